@@ -1,0 +1,18 @@
+"""Online beamforming in the STFT domain. Imports only numpy and scipy.
+
+- :mod:`beamform.stft`: streaming STFT analysis / weighted-overlap-add synthesis (and batch twins).
+- :mod:`beamform.das`: online weighted delay-and-sum (TOA paper eqs. 7-8).
+"""
+from .das import DelayAndSum, delay_and_sum
+from .stft import StreamingIstft, StreamingStft, analysis_window, dual_window, istft, stft
+
+__all__ = [
+    "DelayAndSum",
+    "delay_and_sum",
+    "StreamingStft",
+    "StreamingIstft",
+    "analysis_window",
+    "dual_window",
+    "stft",
+    "istft",
+]

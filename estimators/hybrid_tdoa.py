@@ -1,0 +1,1367 @@
+"""Asynchronous microphone-array calibration from hybrid TDOA and odometry.
+
+Implements Zhang, Wang, Kong, "Asynchronous Microphone Array Calibration Using Hybrid TDOA
+Information" (arXiv 2403.05791), with a damped, robust, sparse solver.
+
+Model
+-----
+``N`` asynchronous microphones with position ``x_i``, time offset ``tau_i`` and clock drift ``delta_i``;
+``K`` sound events at ``s_j`` emitted at known times ``t_j`` (``t_0 = 0``, ``interval_s[j] = t_{j+1} - t_j``)
+by a moving source whose odometry ``m_j = s_{j+1} - s_j + v_j`` is measured. Arrival time on mic ``i``'s
+clock (eq. 4)::
+
+    T_ij = |x_i - s_j| / c + tau_i + (1 + delta_i) t_j
+
+Measurements (all optional per entry: NaN marks a missed chirp):
+
+- TDOA-S, adjacent events at one mic, no offset (eq. 5), ``tdoa_events_s[j, i] = T_{i,j+1} - T_{i,j}``::
+
+      (|x_i - s_{j+1}| - |x_i - s_j|) / c + (1 + delta_i) interval_s[j]
+
+- TDOA-M, mic ``i`` against mic 0 at one event (eq. 6), ``tdoa_mics_s[j, i] = T_ij - T_0j``
+  (column 0 unused)::
+
+      (|x_i - s_j| - |x_0 - s_j|) / c + (tau_i - tau_0) + (delta_i - delta_0) t_j
+
+- odometry ``odometry_m[j] = s_{j+1} - s_j + v_j`` in the source's odometry frame (eq. 9).
+
+The weighted nonlinear least squares of eq. (10), ``W = diag(sigma_tdoa^2 I, sigma_odo^2 I)``, is solved by
+Levenberg-Marquardt (Marquardt scaling, Nielsen damping update) with an optional robust loss (iteratively
+reweighted), on a sparse Jacobian when the problem is large. ``method="baseline"`` drops TDOA-S (the
+TDOA-M + odometry method the paper compares with); then only relative drifts are observable and
+``delta_0 = 0``.
+
+Frames
+------
+- Gauge (paper Sec. II): ``s_0 = 0``, ``(s_1)_y = (s_1)_z = (s_2)_z = 0``, ``tau_0 = 0``. The solver rotates the
+  odometry into the frame of its own first three integrated points, solves there, and rotates the result
+  back: :class:`CalibrationResult` positions are in the odometry frame with event 0 at the origin.
+- Mic frame (Appendix A): ``x_0 = 0``, ``(x_1)_y = (x_1)_z = (x_2)_z = 0``, offsets ``tau_i - tau_0`` and drifts
+  ``delta_i - delta_0``; errors are scored there (:func:`to_mic_frame`, :func:`mic_frame_error`).
+
+Units: seconds, metres, drift in ppm (``delta = drift_ppm * 1e-6``); mic 0 is the reference.
+"""
+from __future__ import annotations
+
+import dataclasses
+import logging
+from typing import Literal
+
+import numpy as np
+import scipy.linalg
+import scipy.linalg.lapack
+import scipy.sparse
+
+from .conventions import SPEED_OF_SOUND_M_S
+
+__all__ = [
+    "CalibrationResult",
+    "CrlbResult",
+    "HybridTdoaProblem",
+    "MicFrameScene",
+    "NoiseLevels",
+    "Scene",
+    "crlb",
+    "estimate_noise_levels",
+    "mic_frame_error",
+    "random_initial_scene",
+    "simulate_problem",
+    "solve",
+    "to_mic_frame",
+]
+
+logger = logging.getLogger(__name__)
+
+Method = Literal["hybrid", "baseline"]
+Loss = Literal["linear", "soft_l1", "huber"]
+Verdict = Literal["converged", "diverged", "suspect_local_minimum", "max_iterations"]
+
+_PPM = 1e-6
+_DENSE_LIMIT = 3_000_000  # n_residuals * n_params below which a dense Jacobian is faster
+
+
+def _readonly(a, *, shape=None, name="array") -> np.ndarray:
+    out = np.array(a, dtype=np.float64, copy=True)
+    if shape is not None and out.shape != shape:
+        raise ValueError(f"{name} has shape {out.shape}, expected {shape}")
+    out.setflags(write=False)
+    return out
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Data containers
+# --------------------------------------------------------------------------------------------------------------
+@dataclasses.dataclass(frozen=True)
+class HybridTdoaProblem:
+    """Measurements of one calibration session (immutable).
+
+    Parameters
+    ----------
+    tdoa_events_s : ndarray, shape (K-1, N), float, or None
+        TDOA-S (eq. 5): ``T_{i,j+1} - T_{i,j}`` on mic ``i``'s clock, seconds; NaN = missing. None for a
+        TDOA-M-only session (then only ``method="baseline"`` can be solved).
+    tdoa_mics_s : ndarray, shape (K, N), float
+        TDOA-M (eq. 6): ``T_ij - T_0j``, seconds; column 0 is ignored; NaN = missing.
+    odometry_m : ndarray, shape (K-1, 3), float
+        Measured displacement ``s_{j+1} - s_j`` in the source's odometry frame, metres; NaN rows = missing.
+    interval_s : ndarray, shape (K-1,), float
+        Known emission intervals ``t_{j+1} - t_j``, seconds (on the emitter's clock).
+    sigma_tdoa_s : float
+        TDOA noise standard deviation, seconds (both kinds unless ``sigma_tdoa_mics_s`` is given).
+    sigma_odo_m : float
+        Odometry noise standard deviation per axis per step, metres.
+    speed_of_sound_m_s : float
+    sigma_tdoa_mics_s : float or None
+        Separate TDOA-M noise std, seconds (e.g. from :func:`estimate_noise_levels`).
+    """
+
+    tdoa_events_s: np.ndarray | None
+    tdoa_mics_s: np.ndarray
+    odometry_m: np.ndarray
+    interval_s: np.ndarray
+    sigma_tdoa_s: float
+    sigma_odo_m: float
+    speed_of_sound_m_s: float = SPEED_OF_SOUND_M_S
+    sigma_tdoa_mics_s: float | None = None
+
+    def __post_init__(self):
+        tm = np.asarray(self.tdoa_mics_s, dtype=np.float64)
+        if tm.ndim != 2 or tm.shape[0] < 3 or tm.shape[1] < 3:
+            raise ValueError(f"tdoa_mics_s shape {tm.shape} must be (n_events >= 3, n_mics >= 3)")
+        k, n = tm.shape
+        object.__setattr__(self, "tdoa_mics_s", _readonly(tm))
+        if self.tdoa_events_s is not None:
+            object.__setattr__(self, "tdoa_events_s",
+                               _readonly(self.tdoa_events_s, shape=(k - 1, n), name="tdoa_events_s"))
+        object.__setattr__(self, "odometry_m", _readonly(self.odometry_m, shape=(k - 1, 3), name="odometry_m"))
+        iv = _readonly(self.interval_s, shape=(k - 1,), name="interval_s")
+        if not np.all(np.isfinite(iv)) or np.any(iv < 0):
+            raise ValueError("interval_s must be finite and >= 0 seconds")
+        object.__setattr__(self, "interval_s", iv)
+        for name in ("sigma_tdoa_s", "sigma_odo_m", "speed_of_sound_m_s"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v > 0):
+                raise ValueError(f"{name}={v} must be a finite positive number")
+        if self.sigma_tdoa_mics_s is not None and not (np.isfinite(self.sigma_tdoa_mics_s)
+                                                         and self.sigma_tdoa_mics_s > 0):
+            raise ValueError(f"sigma_tdoa_mics_s={self.sigma_tdoa_mics_s} must be a finite positive number or None")
+        if not np.all(np.isfinite(self.odometry_m[:2])):
+            raise ValueError("odometry_m rows 0 and 1 are needed to fix the frame")
+
+    @property
+    def n_mics(self) -> int:
+        return self.tdoa_mics_s.shape[1]
+
+    @property
+    def n_events(self) -> int:
+        return self.tdoa_mics_s.shape[0]
+
+    @property
+    def emission_times_s(self) -> np.ndarray:
+        """ndarray, shape (K,): ``t_j`` with ``t_0 = 0``, seconds."""
+        return np.concatenate([[0.0], np.cumsum(self.interval_s)])
+
+    @property
+    def sigma_events_s(self) -> float:
+        return float(self.sigma_tdoa_s)
+
+    @property
+    def sigma_mics_s(self) -> float:
+        return float(self.sigma_tdoa_mics_s if self.sigma_tdoa_mics_s is not None else self.sigma_tdoa_s)
+
+
+@dataclasses.dataclass(frozen=True)
+class Scene:
+    """Mic and event geometry with clock parameters (a truth, an initial value, or an estimate).
+
+    Parameters
+    ----------
+    mic_positions_m : ndarray, shape (N, 3)
+    event_positions_m : ndarray, shape (K, 3)
+    offsets_s : ndarray, shape (N,), optional
+        ``tau_i``, seconds (only differences to mic 0 are observable). Default 0.
+    drifts_ppm : ndarray, shape (N,), optional
+        ``delta_i * 1e6``. Default 0.
+    """
+
+    mic_positions_m: np.ndarray
+    event_positions_m: np.ndarray
+    offsets_s: np.ndarray | None = None
+    drifts_ppm: np.ndarray | None = None
+
+    def __post_init__(self):
+        x = _readonly(self.mic_positions_m, name="mic_positions_m")
+        s = _readonly(self.event_positions_m, name="event_positions_m")
+        if x.ndim != 2 or x.shape[1] != 3 or s.ndim != 2 or s.shape[1] != 3:
+            raise ValueError(f"positions must be (n, 3): mics {x.shape}, events {s.shape}")
+        n = x.shape[0]
+        off = np.zeros(n) if self.offsets_s is None else self.offsets_s
+        dr = np.zeros(n) if self.drifts_ppm is None else self.drifts_ppm
+        object.__setattr__(self, "mic_positions_m", x)
+        object.__setattr__(self, "event_positions_m", s)
+        object.__setattr__(self, "offsets_s", _readonly(off, shape=(n,), name="offsets_s"))
+        object.__setattr__(self, "drifts_ppm", _readonly(dr, shape=(n,), name="drifts_ppm"))
+
+
+@dataclasses.dataclass(frozen=True)
+class CalibrationResult:
+    """Outcome of :func:`solve` (immutable; safe to hand over from a worker thread).
+
+    Attributes
+    ----------
+    scene : Scene
+        Estimate in the odometry frame with event 0 at the origin; ``offsets_s[0] = 0``; for
+        ``method="baseline"`` drifts are relative to mic 0 (``drifts_ppm[0] = 0``).
+    method : {"hybrid", "baseline"}
+    verdict : {"converged", "diverged", "suspect_local_minimum", "max_iterations"}
+        ``converged``: step/cost criteria met and residuals plausible (robust normalised residual scale
+        ``residual_scale`` <= ``max_residual_scale`` and no mic with a systematically bad fit);
+        ``suspect_local_minimum``: numerically converged but residuals implausible;
+        ``max_iterations``: iteration budget spent; ``diverged``: non-finite or exploding estimate.
+    cost : float
+        Final (robust) cost ``sum rho(r_w)`` of whitened residuals.
+    chi2_per_dof : float
+        ``sum r_w^2 / (n_residuals - n_params)`` (not robust).
+    residual_scale : float
+        ``1.4826 * median |r_w|``: about 1 when the assumed noise levels are right.
+    inlier_fraction : float
+        Share of whitened residuals below 5 * max(1, residual_scale).
+    n_iterations : int
+        LM iterations summed over all starts.
+    n_starts_used : int
+    outliers_tdoa_events : ndarray, shape (K-1, N), bool
+        TDOA-S rejected as gross mis-detections (see ``reject_sigma``).
+    outliers_tdoa_mics : ndarray, shape (K, N), bool
+        TDOA-M rejected as gross mis-detections.
+    mic_frame_location_std_m : ndarray, shape (N,) or None
+        Per-mic location std in the mic frame from the Fisher information at the estimate, covariance carried
+        through the Jacobian of the frame change (None unless ``with_covariance``).
+    """
+
+    scene: Scene
+    method: str
+    verdict: str
+    cost: float
+    chi2_per_dof: float
+    residual_scale: float
+    inlier_fraction: float
+    n_iterations: int
+    n_starts_used: int
+    outliers_tdoa_events: np.ndarray
+    outliers_tdoa_mics: np.ndarray
+    mic_frame_location_std_m: np.ndarray | None = None
+
+    @property
+    def mic_positions_m(self) -> np.ndarray:
+        return self.scene.mic_positions_m
+
+    @property
+    def event_positions_m(self) -> np.ndarray:
+        return self.scene.event_positions_m
+
+    @property
+    def offsets_s(self) -> np.ndarray:
+        return self.scene.offsets_s
+
+    @property
+    def drifts_ppm(self) -> np.ndarray:
+        return self.scene.drifts_ppm
+
+
+@dataclasses.dataclass(frozen=True)
+class MicFrameScene:
+    """A scene expressed in the mic frame of Appendix A (eq. 17-18).
+
+    Attributes
+    ----------
+    mic_positions_m : ndarray, shape (N, 3)
+        ``x_0 = 0``, ``x_1`` on +x, ``x_2`` in the x-y plane (positive y).
+    event_positions_m : ndarray, shape (K, 3)
+    offsets_s : ndarray, shape (N,)
+        ``tau_i - tau_0``.
+    drifts_ppm : ndarray, shape (N,)
+        ``(delta_i - delta_0) * 1e6``.
+    rotation : ndarray, shape (3, 3)
+        ``x_mic = rotation @ (x - x_0)``.
+    """
+
+    mic_positions_m: np.ndarray
+    event_positions_m: np.ndarray
+    offsets_s: np.ndarray
+    drifts_ppm: np.ndarray
+    rotation: np.ndarray
+
+
+@dataclasses.dataclass(frozen=True)
+class CrlbResult:
+    """Cramer-Rao bound (eqs. 11-16) of one problem at a true scene, scored in the mic frame.
+
+    ``*_std_*`` are the paper's D_CRLB (eq. 16): ``sqrt(mean_{i>=1} var_i)`` where ``var_i`` sums the
+    variances of mic ``i``'s mic-frame coordinates (x of mic 1, x-y of mic 2, x-y-z of the others).
+
+    Attributes
+    ----------
+    location_std_m, offset_std_s, drift_std_ppm : float
+        Covariance carried from the solver gauge into the mic frame with the full Jacobian of the frame
+        change (the frame moves with the estimated mics 0, 1, 2).
+    location_std_m_authors, offset_std_s_authors, drift_std_ppm_authors : float
+        As the authors' code computes it: hybrid, the sound-frame covariance only rotated (eq. 15 with
+        ``A`` built from the true rotation, ignoring how the frame depends on mics 0-2); baseline, solved
+        directly in the true mic frame with the odometry rotated into it by the true rotation.
+    per_mic_location_std_m : ndarray, shape (N,)
+        Full-Jacobian per-mic location std (mic 0 is 0 by construction).
+    mic_frame_covariance : ndarray, shape (5N, 5N)
+        Full-Jacobian covariance of ``[x_mic (N*3, row-major), offsets_s (N), deltas (N, unitless)]``.
+    """
+
+    method: str
+    location_std_m: float
+    offset_std_s: float
+    drift_std_ppm: float
+    location_std_m_authors: float
+    offset_std_s_authors: float
+    drift_std_ppm_authors: float
+    per_mic_location_std_m: np.ndarray
+    mic_frame_covariance: np.ndarray
+
+
+@dataclasses.dataclass(frozen=True)
+class NoiseLevels:
+    """TDOA noise levels estimated as in Appendix B.
+
+    Attributes
+    ----------
+    tdoa_events_std_s : float
+        Pooled std of TDOA-S residuals after removing the geometry and a least-squares drift per mic.
+    tdoa_mics_std_s : float
+        Pooled std of TDOA-M residuals after removing the geometry and a least-squares offset + drift per mic.
+    per_mic_events_std_s : ndarray, shape (N,)
+    per_mic_mics_std_s : ndarray, shape (N,)
+        Entry 0 is NaN (reference mic).
+    """
+
+    tdoa_events_std_s: float
+    tdoa_mics_std_s: float
+    per_mic_events_std_s: np.ndarray
+    per_mic_mics_std_s: np.ndarray
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Frames
+# --------------------------------------------------------------------------------------------------------------
+def _frame_of(p0: np.ndarray, p1: np.ndarray, p2: np.ndarray) -> np.ndarray:
+    """Rotation ``R`` with ``R @ (p - p0)`` putting p1 on +x and p2 in the x-y plane (y > 0) (``any2s``)."""
+    ex = p1 - p0
+    ex = ex / np.linalg.norm(ex)
+    ey = (p2 - p0) - np.dot(p2 - p0, ex) * ex
+    ey = ey / np.linalg.norm(ey)
+    return np.stack([ex, ey, np.cross(ex, ey)])
+
+
+def to_mic_frame(scene: Scene | CalibrationResult) -> MicFrameScene:
+    """Express a scene in the mic frame of Appendix A (``x_0 = 0``, ``x_1`` on +x, ``x_2`` in x-y).
+
+    Parameters
+    ----------
+    scene : Scene or CalibrationResult
+        Needs at least 3 mics, mics 0, 1, 2 not collinear.
+    """
+    if isinstance(scene, CalibrationResult):
+        scene = scene.scene
+    x = scene.mic_positions_m
+    if x.shape[0] < 3:
+        raise ValueError(f"n_mics={x.shape[0]} must be >= 3 for the mic frame")
+    r = _frame_of(x[0], x[1], x[2])
+    return MicFrameScene(
+        mic_positions_m=_readonly((x - x[0]) @ r.T),
+        event_positions_m=_readonly((scene.event_positions_m - x[0]) @ r.T),
+        offsets_s=_readonly(scene.offsets_s - scene.offsets_s[0]),
+        drifts_ppm=_readonly(scene.drifts_ppm - scene.drifts_ppm[0]),
+        rotation=_readonly(r),
+    )
+
+
+def mic_frame_error(estimate: Scene | CalibrationResult, truth: Scene) -> dict[str, float]:
+    """Errors scored as in the paper (``compute_error.m``), both scenes in their own mic frames.
+
+    Returns
+    -------
+    dict
+        ``location_m``: ``sqrt(mean_{i>=1} |x_i - x_i_true|^2)``; ``offset_s``: RMS of offset errors (mics >= 1);
+        ``drift_ppm``: RMS of relative drift errors (mics >= 1); ``events_m``: RMS event location error.
+    """
+    a, b = to_mic_frame(estimate), to_mic_frame(truth)
+    return {
+        "location_m": float(np.sqrt(np.mean(np.sum((a.mic_positions_m[1:] - b.mic_positions_m[1:]) ** 2, 1)))),
+        "offset_s": float(np.sqrt(np.mean((a.offsets_s[1:] - b.offsets_s[1:]) ** 2))),
+        "drift_ppm": float(np.sqrt(np.mean((a.drifts_ppm[1:] - b.drifts_ppm[1:]) ** 2))),
+        "events_m": float(np.sqrt(np.mean(np.sum((a.event_positions_m - b.event_positions_m) ** 2, 1)))),
+    }
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Problem layout: parameter vector, gauge, measurement rows, Jacobian pattern
+# --------------------------------------------------------------------------------------------------------------
+# Full parameter vector: [x (3N, row-major), tau (N), delta (N, unitless), s (3K, row-major)].
+class _Layout:
+    """Index arrays shared by every residual/Jacobian evaluation of one problem and gauge.
+
+    Every residual is ``w * (sum_g coef_g |x_m - s_e| + L @ p - y)``: at most two mic-event distances
+    (TDOA-S: ``+|x_i - s_{j+1}|, -|x_i - s_j|``; TDOA-M: ``+|x_i - s_j|, -|x_0 - s_j|``; odometry: none) plus a
+    constant linear part ``L`` (drift, offset and odometry terms). One evaluation computes the (N, K)
+    distances and unit vectors once; the Jacobian entries are gathers of them, summed into a dense array
+    (small problems) or CSR data with a fixed pattern (large ones).
+    """
+
+    def __init__(self, problem: HybridTdoaProblem, method: str, gauge: str = "sound",
+                 odometry_gauge_m: np.ndarray | None = None):
+        n, k = problem.n_mics, problem.n_events
+        self.n, self.k = n, k
+        self.c = c = problem.speed_of_sound_m_s
+        self.n_full = 5 * n + 3 * k
+        o_tau, o_del, o_s = 3 * n, 4 * n, 5 * n
+        self.o_tau, self.o_del, self.o_s = o_tau, o_del, o_s
+        free = np.ones(self.n_full, dtype=bool)
+        free[o_tau] = False  # tau_0 = 0
+        if method == "baseline":
+            free[o_del] = False  # only relative drifts are observable from TDOA-M
+        if gauge == "sound":
+            free[o_s:o_s + 3] = False  # s_0 = 0
+            free[o_s + 4:o_s + 6] = False  # (s_1)_y = (s_1)_z = 0
+            free[o_s + 8] = False  # (s_2)_z = 0
+        elif gauge == "mic":
+            free[0:3] = False  # x_0 = 0
+            free[4:6] = False  # (x_1)_y = (x_1)_z = 0
+            free[8] = False  # (x_2)_z = 0
+        else:  # pragma: no cover - internal
+            raise ValueError(f"{gauge=}")
+        self.free = free
+        self.col_of = np.full(self.n_full, -1, dtype=np.intp)
+        self.col_of[free] = np.arange(int(free.sum()))
+        self.n_free = int(free.sum())
+
+        t = problem.emission_times_s
+        # TDOA-S rows (eq. 5)
+        if method == "hybrid":
+            if problem.tdoa_events_s is None:
+                raise ValueError("method='hybrid' needs tdoa_events_s; use method='baseline' for TDOA-M only")
+            jj, ii = np.nonzero(np.isfinite(problem.tdoa_events_s))
+        else:
+            jj = ii = np.zeros(0, dtype=np.intp)
+        self.s_mic, self.s_ev = ii, jj
+        self.s_dt = problem.interval_s[jj]
+        self.s_y = (problem.tdoa_events_s[jj, ii] - self.s_dt) if len(jj) else np.zeros(0)
+        self.s_w = 1.0 / problem.sigma_events_s
+        # TDOA-M rows (eq. 6)
+        tm = problem.tdoa_mics_s.copy()
+        tm[:, 0] = np.nan
+        jm, im = np.nonzero(np.isfinite(tm))
+        self.m_mic, self.m_ev = im, jm
+        self.m_t = t[jm]
+        self.m_y = tm[jm, im]
+        self.m_w = 1.0 / problem.sigma_mics_s
+        # odometry rows (eq. 9)
+        odo = problem.odometry_m if odometry_gauge_m is None else odometry_gauge_m
+        steps = np.nonzero(np.all(np.isfinite(odo), axis=1))[0]
+        self.o_step, self.o_y = steps, odo[steps]
+        self.o_w = 1.0 / problem.sigma_odo_m
+        ns, nm, no = len(ii), len(im), 3 * len(steps)
+        self.n_s, self.n_m, self.n_o = ns, nm, no
+        self.n_res = nr = ns + nm + no
+        rs, rm, ro = np.arange(ns), ns + np.arange(nm), ns + nm + np.arange(no)
+        self.w = np.concatenate([np.full(ns, self.s_w), np.full(nm, self.m_w), np.full(no, self.o_w)])
+        self.y = np.concatenate([self.s_y, self.m_y, self.o_y.ravel()])
+        # geometric terms: (row, mic, event, coef)
+        g_row = np.concatenate([rs, rs, rm, rm])
+        g_mic = np.concatenate([ii, ii, im, np.zeros(nm, dtype=np.intp)])
+        g_ev = np.concatenate([jj + 1, jj, jm, jm])
+        g_coef = np.concatenate([np.full(ns, 1 / c), np.full(ns, -1 / c), np.full(nm, 1 / c), np.full(nm, -1 / c)])
+        # residual: the first two geometric slots of each row
+        self.ga = np.zeros(nr, dtype=np.intp)
+        self.gb = np.zeros(nr, dtype=np.intp)
+        self.ca = np.zeros(nr)
+        self.cb = np.zeros(nr)
+        first = np.concatenate([np.arange(ns), 2 * ns + np.arange(nm)])
+        second = np.concatenate([ns + np.arange(ns), 2 * ns + nm + np.arange(nm)])
+        self.ga[g_row[first]] = g_mic[first] * k + g_ev[first]
+        self.ca[g_row[first]] = g_coef[first]
+        self.gb[g_row[second]] = g_mic[second] * k + g_ev[second]
+        self.cb[g_row[second]] = g_coef[second]
+        # linear part L (n_res, n_full)
+        st = np.repeat(steps, 3)
+        comp = np.tile(np.arange(3), len(steps))
+        l_row = np.concatenate([rs, rm, rm, rm, rm, ro, ro])
+        l_col = np.concatenate([o_del + ii, o_tau + im, np.full(nm, o_tau), o_del + im, np.full(nm, o_del),
+                                o_s + 3 * (st + 1) + comp, o_s + 3 * st + comp])
+        l_val = np.concatenate([self.s_dt, np.ones(nm), -np.ones(nm), self.m_t, -self.m_t, np.ones(no),
+                                -np.ones(no)])
+        self.lin = scipy.sparse.csr_matrix((l_val, (l_row, l_col)), shape=(nr, self.n_full))
+        # Jacobian entries: 6 per geometric term (x_m: +coef*u, s_e: -coef*u) + the linear ones
+        kk = np.arange(3)
+        e_row = np.concatenate([np.repeat(g_row, 3), np.repeat(g_row, 3), l_row])
+        e_col = np.concatenate([(3 * g_mic[:, None] + kk).ravel(), (o_s + 3 * g_ev[:, None] + kk).ravel(), l_col])
+        e_uidx = np.concatenate([((g_mic * k + g_ev)[:, None] * 3 + kk).ravel()] * 2 + [np.zeros(len(l_row), int)])
+        e_coef = np.concatenate([np.repeat(g_coef, 3), -np.repeat(g_coef, 3), np.zeros(len(l_row))])
+        e_const = np.concatenate([np.zeros(6 * len(g_row)), l_val])
+        wr = self.w[e_row]
+        cfree = self.col_of[e_col]
+        keep = cfree >= 0
+        self.e_uidx = e_uidx[keep]
+        self.e_coef = (e_coef * wr)[keep]
+        self.e_const = (e_const * wr)[keep]
+        rows, cols = e_row[keep], cfree[keep]
+        flat = rows * self.n_free + cols
+        uniq, inv = np.unique(flat, return_inverse=True)  # sorted = CSR order; duplicates summed
+        self.e_inv, self.n_uniq = inv, len(uniq)
+        self.dense = nr * self.n_free <= _DENSE_LIMIT
+        self.u_flat = uniq
+        u_rows = uniq // self.n_free
+        self.indices = (uniq % self.n_free).astype(np.intp)
+        self.indptr = np.concatenate([[0], np.cumsum(np.bincount(u_rows, minlength=nr))])
+        # which residuals belong to which mic (per-mic diagnostics)
+        self.res_mic = np.concatenate([self.s_mic, self.m_mic, np.full(no, -1)])
+
+    # -- parameter helpers ---------------------------------------------------------------------------------------
+    def pack(self, x, tau, delta, s) -> np.ndarray:
+        return np.concatenate([np.ravel(x), tau, delta, np.ravel(s)]).astype(np.float64)
+
+    def unpack(self, p):
+        n, k = self.n, self.k
+        return (p[:3 * n].reshape(n, 3), p[self.o_tau:self.o_del], p[self.o_del:self.o_s],
+                p[self.o_s:].reshape(k, 3))
+
+    def _geometry(self, p: np.ndarray):
+        x = p[:3 * self.n].reshape(self.n, 3)
+        s = p[self.o_s:].reshape(self.k, 3)
+        diff = x[:, None, :] - s[None, :, :]
+        d = np.sqrt(np.einsum("nki,nki->nk", diff, diff))
+        return d.ravel(), diff, d
+
+    # -- residuals and Jacobian ------------------------------------------------------------------------------------
+    def residuals(self, p: np.ndarray) -> np.ndarray:
+        df, _, _ = self._geometry(p)
+        return self.w * (self.ca * df[self.ga] + self.cb * df[self.gb] + self.lin @ p - self.y)
+
+    def jacobian(self, p: np.ndarray):
+        _, diff, d = self._geometry(p)
+        u = (diff / np.maximum(d, 1e-12)[..., None]).ravel()
+        vals = np.bincount(self.e_inv, weights=self.e_const + self.e_coef * u[self.e_uidx], minlength=self.n_uniq)
+        if self.dense:
+            j = np.zeros(self.n_res * self.n_free)
+            j[self.u_flat] = vals
+            return j.reshape(self.n_res, self.n_free)
+        return scipy.sparse.csr_matrix((vals, self.indices, self.indptr), shape=(self.n_res, self.n_free))
+
+    def normal_equations(self, p: np.ndarray, w: np.ndarray | None = None, r: np.ndarray | None = None):
+        """``A = J^T diag(w) J`` (dense, n_free x n_free) and ``g = J^T diag(w) r``."""
+        j = self.jacobian(p)
+        if self.dense:
+            if w is not None:
+                sw = np.sqrt(w)
+                j *= sw[:, None]
+            a = j.T @ j
+            g = None if r is None else j.T @ (r if w is None else r * sw)
+        else:
+            jw = j if w is None else scipy.sparse.diags(w) @ j
+            a = (jw.T @ j).toarray()
+            g = None if r is None else jw.T @ r
+        return a, g
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Robust losses (scipy.optimize.least_squares conventions, in whitened units)
+# --------------------------------------------------------------------------------------------------------------
+def _loss(r: np.ndarray, loss: str, f: float):
+    """Return ``(cost, weights)``: ``cost = sum rho(r)``, IRLS weights ``rho'(r)/r``."""
+    if loss == "linear":
+        return 0.5 * float(r @ r), np.ones_like(r)
+    z = (r / f) ** 2
+    if loss == "soft_l1":
+        q = np.sqrt(1.0 + z)
+        return float(np.sum(f * f * (q - 1.0))), 1.0 / q
+    if loss == "huber":
+        a = np.abs(r)
+        big = a > f
+        rho = np.where(big, f * a - 0.5 * f * f, 0.5 * r * r)
+        return float(rho.sum()), np.where(big, f / np.maximum(a, 1e-300), 1.0)
+    raise ValueError(f"{loss=} must be 'linear', 'soft_l1' or 'huber'")
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Levenberg-Marquardt
+# --------------------------------------------------------------------------------------------------------------
+@dataclasses.dataclass(frozen=True)
+class _Run:
+    p: np.ndarray
+    status: str  # "converged" | "diverged" | "max_iterations"
+    cost: float
+    n_iterations: int
+
+
+def _adaptive_scale(r: np.ndarray, f_scale: float, loss: str) -> float:
+    """Robust-loss scale ``f_scale * max(1, 1.4826 median|r|)``: huge far from the solution (plain least
+    squares, wide basin), ``f_scale`` sigmas near it (gross mis-detections down-weighted)."""
+    if loss == "linear":
+        return f_scale
+    return f_scale * max(1.0, 1.4826 * float(np.median(np.abs(r))))
+
+
+def _levenberg_marquardt(lay: _Layout, p0: np.ndarray, *, loss: str, f_scale: float, max_iterations: int,
+                         ftol: float = 1e-8, xtol: float = 1e-5, limit_m: float = 1e3,
+                         max_step_m: float = np.inf, mask: np.ndarray | None = None) -> _Run:
+    """Levenberg-Marquardt with More's scaling (running max of ``diag(A)``), Nielsen's damping update, a
+    position trust region and IRLS for the robust loss; the loss scale adapts to the robust residual scale at
+    every accepted step. ``mask`` (0/1 per residual) drops rejected measurements."""
+    p = p0.copy()
+    free = lay.free
+
+    def resid(q):
+        return lay.residuals(q) if mask is None else lay.residuals(q) * mask
+
+    def weights(w):
+        return w if mask is None else w * mask
+
+    r = resid(p)
+    f = _adaptive_scale(r if mask is None else r[mask > 0], f_scale, loss)
+    cost, w = _loss(r, loss, f)
+    if not np.isfinite(cost):
+        return _Run(p, "diverged", cost, 0)
+    lam, nu = 1e-3, 2.0
+    a, g = lay.normal_equations(p, weights(w), r)
+    d = np.zeros(lay.n_free)
+    pos_cols = np.concatenate([lay.col_of[:3 * lay.n], lay.col_of[lay.o_s:]])
+    pos_cols = pos_cols[pos_cols >= 0]
+    it = 0
+    while it < max_iterations:
+        it += 1
+        # More's scaling: the running maximum of diag(A) keeps down-weighted directions damped
+        d = np.maximum(d, np.maximum(np.diag(a), 1e-12 * max(np.max(np.diag(a)), 1e-300)))
+        if np.max(np.abs(g) / np.sqrt(d)) <= 1e-10 * (1.0 + np.sqrt(2.0 * cost)):
+            return _Run(p, "converged", cost, it)
+        m = a.copy()
+        m.flat[::len(d) + 1] += lam * d
+        _, h, info = scipy.linalg.lapack.dposv(m, g)  # Cholesky solve of the damped normal equations
+        if info != 0:
+            lam *= nu
+            nu *= 2.0
+            continue
+        h = -h
+        big = np.max(np.abs(h[pos_cols])) if len(pos_cols) else 0.0
+        if big > max_step_m:  # trust region on positions: no jump beyond the scene size in one step
+            h *= max_step_m / big
+        step_scaled = np.max(np.abs(h) * np.sqrt(d))
+        p_new = p.copy()
+        p_new[free] += h
+        r_new = resid(p_new)
+        cost_new, w_new = _loss(r_new, loss, f)
+        pred = -(g @ h + 0.5 * h @ (a @ h))
+        rho = (cost - cost_new) / pred if pred > 0 else -1.0
+        if np.isfinite(cost_new) and rho > 0:
+            decrease = cost - cost_new
+            p, r, cost, w = p_new, r_new, cost_new, w_new
+            if np.max(np.abs(p[:3 * lay.n])) > limit_m or np.max(np.abs(p[lay.o_s:])) > limit_m:
+                return _Run(p, "diverged", cost, it)
+            lam *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
+            nu = 2.0
+            f_new = _adaptive_scale(r if mask is None else r[mask > 0], f_scale, loss)
+            if f_new != f:
+                f = f_new
+                cost, w = _loss(r, loss, f)
+            elif decrease <= ftol * cost or step_scaled <= xtol:
+                return _Run(p, "converged", cost, it)
+            a, g = lay.normal_equations(p, weights(w), r)
+        else:
+            if step_scaled <= xtol:
+                return _Run(p, "converged", cost, it)
+            lam *= nu
+            nu *= 2.0
+            if lam > 1e16:
+                return _Run(p, "converged", cost, it)  # no descent direction left: at a minimum
+    return _Run(p, "max_iterations", cost, it)
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Initialisation
+# --------------------------------------------------------------------------------------------------------------
+def _integrated_odometry(odometry_m: np.ndarray) -> np.ndarray:
+    steps = np.where(np.all(np.isfinite(odometry_m), axis=1)[:, None], odometry_m, 0.0)
+    return np.concatenate([np.zeros((1, 3)), np.cumsum(steps, axis=0)])
+
+
+def random_initial_scene(n_mics: int, n_events: int, *, rng: np.random.Generator,
+                         low_m=(-0.8, 0.0, -1.0), high_m=(0.8, 2.0, 0.0)) -> Scene:
+    """The paper's random initial value (``init_generation1``): every mic and event position uniform in a box,
+    offsets and drifts 0. The default box is the real-data one (x in [-0.8, 0.8], y in [0, 2], z in [-1, 0])."""
+    lo, hi = np.asarray(low_m, float), np.asarray(high_m, float)
+    pos = lo + (hi - lo) * rng.random((n_mics + n_events, 3))
+    return Scene(pos[:n_mics], pos[n_mics:])
+
+
+def _grid(events: np.ndarray, n_grid: int) -> np.ndarray:
+    """Search grid: bounding box of the events grown by ``max(1 m, half its largest side)``."""
+    lo, hi = events.min(0), events.max(0)
+    margin = max(1.0, 0.5 * float(np.max(hi - lo)))
+    lo, hi = lo - margin, hi + margin
+    h = (np.prod(hi - lo) / n_grid) ** (1 / 3)
+    axes = [np.arange(lo[d] + h / 2, hi[d], h) for d in range(3)]
+    return np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+
+
+class _MicBatch:
+    """Each mic's own subproblem with the events (and mic 0) fixed, for a batch of mics, rows padded.
+
+    Whitened residual of row ``r`` of mic ``b``: ``w * (geom(x) + known) + A @ theta`` with ``geom`` from TDOA-S
+    (eq. 5, ``|x - s_{j+1}| - |x - s_j|``) and, if used, TDOA-M (eq. 6, ``|x - s_j|``) over ``c``, and linear
+    parameters ``theta = [delta_i, tau_i]`` (``tau_i`` pinned by a ridge when the mic has no TDOA-M row).
+    """
+
+    def __init__(self, lay: _Layout, p: np.ndarray, mics, *, use_m: bool, max_rows: int = 64,
+                 s_rows: np.ndarray | None = None):
+        x, tau, delta, s = lay.unpack(p)
+        self.mics = np.asarray(list(mics), dtype=np.intp)
+        c = lay.c
+        per = []
+        s_ok = np.ones(lay.n_s, dtype=bool) if s_rows is None else s_rows
+        for i in self.mics:
+            ss = np.nonzero((lay.s_mic == i) & s_ok)[0]
+            mm = np.nonzero(lay.m_mic == i)[0] if (use_m and i > 0) else np.zeros(0, dtype=np.intp)
+            if len(ss) > max_rows:
+                ss = ss[np.linspace(0, len(ss) - 1, max_rows).astype(int)]
+            if len(mm) > max_rows:
+                mm = mm[np.linspace(0, len(mm) - 1, max_rows).astype(int)]
+            per.append((ss, mm))
+        b = len(self.mics)
+        r_max = max([len(a) + len(m) for a, m in per] + [1])
+        self.ev_a = np.zeros((b, r_max), dtype=np.intp)
+        self.ev_b = np.zeros((b, r_max), dtype=np.intp)
+        self.has_b = np.zeros((b, r_max))
+        self.w = np.zeros((b, r_max))
+        self.b0 = np.zeros((b, r_max))
+        self.a = np.zeros((b, r_max, 2))
+        self.n_rows = np.zeros(b, dtype=np.intp)
+        self.has_m = np.zeros(b, dtype=bool)
+        for q, (ss, mm) in enumerate(per):
+            na, nb = len(ss), len(mm)
+            sl = slice(0, na + nb)
+            self.ev_a[q, sl] = np.concatenate([lay.s_ev[ss] + 1, lay.m_ev[mm]])
+            self.ev_b[q, sl] = np.concatenate([lay.s_ev[ss], lay.m_ev[mm]])
+            self.has_b[q, :na] = 1.0
+            w = np.concatenate([np.full(na, lay.s_w), np.full(nb, lay.m_w)])
+            self.w[q, sl] = w
+            known = np.concatenate([np.zeros(na), -np.sqrt(np.sum((x[0] - s[lay.m_ev[mm]]) ** 2, 1)) / c
+                                    - delta[0] * lay.m_t[mm]])
+            self.b0[q, sl] = w * (known - np.concatenate([lay.s_y[ss], lay.m_y[mm]]))
+            self.a[q, :na, 0] = lay.s_w * lay.s_dt[ss]
+            self.a[q, na:na + nb, 0] = lay.m_w * lay.m_t[mm]
+            self.a[q, na:na + nb, 1] = lay.m_w
+            self.n_rows[q] = na + nb
+            self.has_m[q] = nb > 0
+        self.s, self.c = s, c
+        ata = np.einsum("bri,brj->bij", self.a, self.a)
+        dg = np.einsum("bii->bi", ata)
+        self.ridge = np.where(dg > 0, 1e-8 * dg, 1.0)  # (b, 2)
+        self.theta_now = np.stack([delta[self.mics], tau[self.mics]], 1)
+        self.x_now = x[self.mics]
+
+    def grid_search(self, dist_t: np.ndarray, cap: float, n_best: int):
+        """The ``n_best`` grid points per mic with the lowest truncated score ``sum min(r^2, cap^2)``, ``theta``
+        eliminated by least squares (residual projected out of ``A``'s range). ``dist_t``: (K, G).
+        Returns grid indices (b, n_best) and theta (b, n_best, 2). One mic at a time keeps the
+        temporaries small (cache-resident)."""
+        b = len(self.mics)
+        n_best = min(n_best, dist_t.shape[1])
+        top = np.zeros((b, n_best), dtype=np.intp)
+        th = np.zeros((b, n_best, 2))
+        for q in range(b):
+            nr = self.n_rows[q]
+            a = self.a[q, :nr]
+            wa = (self.w[q, :nr] / self.c)[:, None]
+            et = wa * dist_t[self.ev_a[q, :nr]]
+            hb = self.has_b[q, :nr] > 0
+            et[hb] -= wa[hb] * dist_t[self.ev_b[q, :nr][hb]]
+            et += self.b0[q, :nr, None]  # (R, G)
+            ata_inv = np.linalg.inv(a.T @ a + np.diag(self.ridge[q]))
+            thq = -(ata_inv @ a.T @ et)  # (2, G) least squares
+            res = et + a @ thq
+            # one refit without the rows far above the typical residual of the grid point: a grossly
+            # mis-detected chirp must not drag theta (3x the mean |r|: a median costs a partition per point)
+            ares = np.abs(res)
+            inl = (ares < np.maximum(cap, 3.0 * ares.mean(axis=0))).astype(float)
+            s00 = (a[:, 0] ** 2) @ inl + self.ridge[q, 0]
+            s01 = (a[:, 0] * a[:, 1]) @ inl
+            s11 = (a[:, 1] ** 2) @ inl + self.ridge[q, 1]
+            ie = inl * et
+            r0, r1 = -(a[:, 0] @ ie), -(a[:, 1] @ ie)
+            det = s00 * s11 - s01 * s01
+            thq = np.stack([(s11 * r0 - s01 * r1) / det, (s00 * r1 - s01 * r0) / det])
+            res = et + a @ thq
+            np.square(res, out=res)
+            np.minimum(res, cap * cap, out=res)
+            score = res.sum(0)
+            t = np.argpartition(score, n_best - 1)[:n_best]
+            top[q] = t
+            th[q] = thq[:, t].T
+        return top, th
+
+    def residuals(self, xs: np.ndarray, th: np.ndarray, rep: np.ndarray | None = None) -> np.ndarray:
+        q = np.arange(len(self.mics)) if rep is None else rep
+        da = np.sqrt(np.sum((xs[:, None, :] - self.s[self.ev_a[q]]) ** 2, -1))
+        db = np.sqrt(np.sum((xs[:, None, :] - self.s[self.ev_b[q]]) ** 2, -1))
+        return (self.w[q] * (da - self.has_b[q] * db) / self.c + self.b0[q]
+                + np.einsum("bri,bi->br", self.a[q], th))
+
+    def costs(self, xs: np.ndarray, th: np.ndarray, f: float, rep: np.ndarray | None = None) -> np.ndarray:
+        """Cauchy cost ``sum f^2/2 log(1 + (r/f)^2)`` (padded rows are 0): with a mic's few own rows, one
+        gross outlier under a non-redescending loss can pull the mic to the far field."""
+        z = (self.residuals(xs, th, rep) / f) ** 2
+        return np.sum(0.5 * f * f * np.log1p(z), axis=1)
+
+    def refine(self, xs: np.ndarray, th: np.ndarray, f: float, rep: np.ndarray, box: tuple, max_step_m: float,
+               n_iter: int = 10):
+        """Batched damped Gauss-Newton with Cauchy IRLS on ``(x, theta)`` for candidates of mics ``rep``;
+        position steps are capped at ``max_step_m`` and candidates leaving ``box`` (lo, hi) get cost inf
+        (with few rows the far field can fit as well as the truth)."""
+        xs, th = xs.copy(), th.copy()
+        cost = self.costs(xs, th, f, rep)
+        lam = np.full(len(xs), 1e-3)
+        ridge5 = np.concatenate([np.zeros((len(xs), 3)), self.ridge[rep]], 1)
+        s_a, s_b = self.s[self.ev_a[rep]], self.s[self.ev_b[rep]]
+        w, hb, a = self.w[rep], self.has_b[rep], self.a[rep]
+        eye = np.eye(5)
+        for _ in range(n_iter):
+            r = self.residuals(xs, th, rep)
+            wt = 1.0 / (1.0 + (r / f) ** 2)  # Cauchy IRLS weight
+            ua = xs[:, None, :] - s_a
+            ub = xs[:, None, :] - s_b
+            ua /= np.maximum(np.sqrt(np.sum(ua * ua, -1)), 1e-12)[..., None]
+            ub /= np.maximum(np.sqrt(np.sum(ub * ub, -1)), 1e-12)[..., None]
+            j = np.concatenate([w[..., None] * (ua - hb[..., None] * ub) / self.c, a], -1)  # (m, R, 5)
+            jw = j * wt[..., None]
+            aa = np.swapaxes(jw, 1, 2) @ j
+            g = np.einsum("bri,br->bi", jw, r)
+            dd = np.einsum("bii->bi", aa)
+            m = aa + ((lam[:, None] * dd) + ridge5)[..., None] * eye
+            try:
+                h = -np.linalg.solve(m, g[..., None])[..., 0]
+            except np.linalg.LinAlgError:
+                break
+            big = np.max(np.abs(h[:, :3]), axis=1, keepdims=True)
+            h = h * np.minimum(1.0, max_step_m / np.maximum(big, 1e-300))
+            xn, tn = xs + h[:, :3], th + h[:, 3:]
+            cn = self.costs(xn, tn, f, rep)
+            ok = cn < cost
+            xs[ok], th[ok], cost[ok] = xn[ok], tn[ok], cn[ok]
+            lam = np.where(ok, np.maximum(lam / 3, 1e-9), lam * 4)
+        outside = np.any((xs < box[0]) | (xs > box[1]), axis=1)
+        cost[outside] = np.inf
+        return xs, th, cost
+
+
+def _best_mic_positions(lay: _Layout, p: np.ndarray, mics, *, use_m: bool, grid: np.ndarray, f: float = 3.0,
+                        cap: float = 10.0, n_best: int = 4, skip_near_current_m: float | None = None,
+                        s_rows: np.ndarray | None = None):
+    """Per-mic global search of each mic's own subproblem (events and mic 0 fixed): grid, then local
+    refinement of the ``n_best`` best grid points (those closer than ``skip_near_current_m`` to the current
+    estimate are skipped: the global solve already refined that basin). Returns the batch, best positions
+    (b, 3), theta (b, 2), best cost (b,; inf when nothing was refined) and the cost at the current estimate."""
+    batch = _MicBatch(lay, p, mics, use_m=use_m, s_rows=s_rows)
+    s = lay.unpack(p)[3]
+    dist_t = np.sqrt(np.sum((s[:, None, :] - grid[None, :, :]) ** 2, -1))  # (K, G), shared by all mics
+    top, th = batch.grid_search(dist_t, cap, n_best)
+    b, nb = top.shape
+    cand = grid[top]  # (b, nb, 3)
+    use = np.ones((b, nb), dtype=bool)
+    if skip_near_current_m is not None:
+        use = np.linalg.norm(cand - batch.x_now[:, None, :], axis=2) > skip_near_current_m
+    now = batch.costs(batch.x_now, batch.theta_now, f)
+    xb, thb, cb = batch.x_now.copy(), batch.theta_now.copy(), np.full(b, np.inf)
+    if skip_near_current_m is None:  # initialisation: fall back on a top grid point
+        xb, thb = cand[:, 0].copy(), th[:, 0].copy()
+    if np.any(use):
+        rep = np.nonzero(use)[0]
+        h = _grid_step_m(grid)
+        box = (grid.min(0) - h, grid.max(0) + h)
+        xr, thr, cr = batch.refine(cand[use], th[use], f, rep, box, h)
+        for q in range(len(rep)):
+            if cr[q] < cb[rep[q]]:
+                xb[rep[q]], thb[rep[q]], cb[rep[q]] = xr[q], thr[q], cr[q]
+    return batch, xb, thb, cb, now
+
+
+def _grid_step_m(grid: np.ndarray) -> float:
+    return float(np.min(np.diff(np.unique(grid[:, 0])))) if len(np.unique(grid[:, 0])) > 1 else 1.0
+
+
+def _odometry_segments(odo: np.ndarray) -> np.ndarray:
+    """Segment index per event: a missing odometry step starts a new rigid segment."""
+    gap = ~np.all(np.isfinite(odo), axis=1)
+    return np.concatenate([[0], np.cumsum(gap)])
+
+
+def _place_segment(lay: _Layout, events: np.ndarray, seg: np.ndarray, g: int, placed: np.ndarray,
+                   pos: np.ndarray, drift: np.ndarray, grid: np.ndarray, cap: float = 10.0) -> np.ndarray:
+    """Translation of odometry segment ``g`` (events known up to a shift) by a grid search on the TDOA-S rows
+    that touch it and an already placed segment or itself, mics and drifts fixed. Returns the new events."""
+    in_g = seg == g
+    a_ok = in_g[lay.s_ev + 1] | placed[lay.s_ev + 1]
+    b_ok = in_g[lay.s_ev] | placed[lay.s_ev]
+    rows = np.nonzero((in_g[lay.s_ev + 1] | in_g[lay.s_ev]) & a_ok & b_ok)[0]
+    if len(rows) < 3:
+        return events
+    shifts = grid - events[in_g].mean(0)  # (G, 3) candidate translations
+    xi = pos[lay.s_mic[rows]]
+
+    def dist(ev_idx):
+        base = events[ev_idx]  # (R, 3)
+        moving = in_g[ev_idx]
+        pts = base[None, :, :] + shifts[:, None, :] * moving[None, :, None]
+        return np.sqrt(np.sum((xi[None] - pts) ** 2, -1))  # (G, R)
+
+    geo = (dist(lay.s_ev[rows] + 1) - dist(lay.s_ev[rows])) / lay.c
+    res = lay.s_w * (geo + drift[lay.s_mic[rows]] * lay.s_dt[rows] - lay.s_y[rows])
+    best = int(np.argmin(np.sum(np.minimum(res * res, cap * cap), axis=1)))
+    out = events.copy()
+    out[in_g] += shifts[best]
+    return out
+
+
+def _smart_init(lay: _Layout, odo_gauge: np.ndarray, method: str, rng: np.random.Generator,
+                n_grid: int) -> np.ndarray:
+    """Events from the integrated odometry; each mic by a global search on its own TDOA-S (position and
+    drift); offsets from the TDOA-M median. Mics without TDOA-S (baseline) are drawn around the events.
+    A missing odometry step splits the events into rigid segments: mics are found against the largest one,
+    then every other segment is shifted into place by a grid search on its TDOA-S."""
+    events = _integrated_odometry(odo_gauge)
+    n = lay.n
+    lo, hi = events.min(0) - 1.0, events.max(0) + 1.0
+    pos = lo + (hi - lo) * rng.random((n, 3))
+    drift = np.zeros(n)
+    if method == "hybrid":
+        seg = _odometry_segments(odo_gauge)
+        ref = int(np.argmax(np.bincount(seg)))
+        s_rows = (seg[lay.s_ev] == ref) & (seg[lay.s_ev + 1] == ref)
+        counts = np.bincount(lay.s_mic[s_rows], minlength=n)
+        mics = np.nonzero(counts >= 5)[0]
+        if len(mics):
+            p = lay.pack(pos, np.zeros(n), drift, events)
+            grid = _grid(events[seg == ref], n_grid)
+            _, xb, thb, _, _ = _best_mic_positions(lay, p, mics, use_m=False, grid=grid, s_rows=s_rows)
+            pos[mics], drift[mics] = xb, thb[:, 0]
+            placed = seg == ref
+            for g in np.unique(seg):
+                if g != ref:
+                    events = _place_segment(lay, events, seg, int(g), placed, pos, drift,
+                                            _grid(np.concatenate([events[placed], pos[mics]]), n_grid))
+                    placed |= seg == g
+            pos -= events[0]
+            events = events - events[0]  # gauge: s_0 = 0
+    tau = np.zeros(n)
+    d = np.linalg.norm(pos[:, None, :] - events[None, :, :], axis=2)
+    for i in range(1, n):
+        sel = lay.m_mic == i
+        if np.any(sel):
+            jj = lay.m_ev[sel]
+            pred = (d[i, jj] - d[0, jj]) / lay.c + (drift[i] - drift[0]) * lay.m_t[sel]
+            tau[i] = float(np.median(lay.m_y[sel] - pred))
+    return lay.pack(pos, tau, drift, events)
+
+
+def _certify(lay: _Layout, p: np.ndarray, method: str, grid: np.ndarray, f: float) -> tuple[list, np.ndarray]:
+    """Check that every mic sits at the global optimum of its own subproblem (events, mic 0 fixed).
+
+    Returns the mics that have a clearly better position elsewhere and a parameter vector with those mics
+    moved there (the restart point)."""
+    counts = np.bincount(lay.s_mic, minlength=lay.n) + np.bincount(lay.m_mic, minlength=lay.n)
+    mics = [i for i in range(lay.n) if counts[i] >= 6 and (method == "hybrid" or i > 0)]
+    if not mics:
+        return [], p
+    batch, xb, thb, cb, cnow = _best_mic_positions(lay, p, mics, use_m=True, grid=grid, f=f,
+                                                   skip_near_current_m=2.5 * _grid_step_m(grid))
+    q = p.copy()
+    moved = []
+    for b, i in enumerate(batch.mics):
+        if cb[b] < 0.8 * cnow[b] - 4.0:
+            moved.append(int(i))
+            q[3 * i:3 * i + 3] = xb[b]
+            q[lay.o_del + i] = thb[b, 0]
+            if batch.has_m[b]:
+                q[lay.o_tau + i] = thb[b, 1]
+    return moved, q
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Solve
+# --------------------------------------------------------------------------------------------------------------
+def _odometry_gauge(problem: HybridTdoaProblem):
+    """Rotation ``R`` taking the odometry frame into the gauge frame (first three integrated points)."""
+    pts = _integrated_odometry(problem.odometry_m)
+    return _frame_of(pts[0], pts[1], pts[2])
+
+
+def _apply_gauge(lay: _Layout, p: np.ndarray) -> np.ndarray:
+    p = p.copy()
+    p[lay.o_tau] = 0.0
+    p[lay.o_s:lay.o_s + 3] = 0.0
+    p[lay.o_s + 4:lay.o_s + 6] = 0.0
+    p[lay.o_s + 8] = 0.0
+    if not lay.free[lay.o_del]:
+        p[lay.o_del + 1:lay.o_s] -= p[lay.o_del]
+        p[lay.o_del] = 0.0
+    return p
+
+
+def _diagnostics(lay: _Layout, p: np.ndarray, mask: np.ndarray | None = None) -> dict:
+    r = lay.residuals(p)
+    keep = np.ones(len(r), dtype=bool) if mask is None else mask > 0
+    rk = r[keep]
+    dof = max(int(keep.sum()) - lay.n_free, 1)
+    scale = 1.4826 * float(np.median(np.abs(rk))) if len(rk) else 0.0
+    inl = np.abs(rk) < 5.0 * max(1.0, scale)
+    # per-mic robust scale: a mic stuck in a wrong basin fits systematically badly
+    worst = 0.0
+    for i in range(lay.n):
+        ri = r[(lay.res_mic == i) & keep]
+        if len(ri) >= 4:
+            worst = max(worst, 1.4826 * float(np.median(np.abs(ri))))
+    ro = r[lay.n_s + lay.n_m:][keep[lay.n_s + lay.n_m:]]
+    return {"chi2_per_dof": float(rk @ rk) / dof, "residual_scale": scale,
+            "inlier_fraction": float(np.mean(inl)) if len(rk) else 1.0, "worst_mic_scale": worst,
+            "odometry_rms": float(np.sqrt(np.mean(ro * ro))) if len(ro) else 0.0,
+            "n_outliers": int(len(r) - keep.sum())}
+
+
+def _plausible(diag: dict, max_residual_scale: float, max_odometry_rms: float) -> bool:
+    """Residuals consistent with the assumed noise: robust TDOA scale, no mic fitting far worse than the
+    rest, most residuals inliers, and an event trajectory that agrees with the odometry (a wrong basin often
+    fits the TDOAs by bending the trajectory)."""
+    return (diag["residual_scale"] <= max_residual_scale
+            and diag["worst_mic_scale"] <= max(3.0 * diag["residual_scale"], 2.0 * max_residual_scale)
+            and diag["inlier_fraction"] >= 0.7
+            and diag["odometry_rms"] <= max_odometry_rms)
+
+
+def solve(problem: HybridTdoaProblem, *, method: Method = "hybrid", init: Scene | None = None,
+          rng: np.random.Generator | int | None = None, max_iterations: int = 100, n_starts: int = 3,
+          loss: Loss = "soft_l1", f_scale: float = 3.0, max_residual_scale: float = 4.0,
+          max_odometry_rms: float = 2.0, reject_sigma: float | None = 8.0, with_covariance: bool = False,
+          n_grid: int = 700) -> CalibrationResult:
+    """Calibrate mics and events from hybrid TDOA + odometry (eq. 10). Pure function.
+
+    Parameters
+    ----------
+    problem : HybridTdoaProblem
+    method : {"hybrid", "baseline"}
+        ``hybrid``: TDOA-S + TDOA-M + odometry (the paper); ``baseline``: TDOA-M + odometry.
+    init : Scene or None
+        First start, in the odometry frame (gauge coordinates are overwritten: ``s_0 = 0`` etc.).
+        None: start from the built-in initialisation (events from integrated odometry, each mic by a grid
+        search on its TDOA-S with a least-squares drift, offsets from TDOA-M).
+    rng : Generator, int or None
+        For random restarts (baseline, or mics without TDOA-S).
+    max_iterations : int
+        Levenberg-Marquardt iteration budget per start (no wall-clock limit).
+    n_starts : int
+        Maximum number of starts. A restart happens only after a verdict other than ``converged``; the
+        second start uses the built-in initialisation, later ones perturb it (hybrid) or draw random mic
+        positions around the odometry (baseline). The best plausible start wins.
+    loss : {"soft_l1", "huber", "linear"}
+        Robust loss on whitened residuals (``f_scale`` in units of sigma): soft_l1 / huber down-weight
+        grossly mis-detected chirps.
+    f_scale : float
+        Inlier scale of the robust loss, in sigmas.
+    max_residual_scale : float
+        Largest plausible robust residual scale (``1.4826 median |r| / sigma``) for a ``converged`` verdict;
+        real detections are often 1-3 sigma of the nominal noise.
+    n_grid : int
+        Number of points of the per-mic search grid (initialisation and local-minimum check).
+    reject_sigma : float or None
+        After a start converges, TDOA residuals above ``reject_sigma * max(1, residual_scale)`` sigmas are taken
+        as gross mis-detections, dropped, and the solution polished without them (reported in
+        ``CalibrationResult.outliers_*``), provided they are at most 10 % of the TDOAs (more points to a wrong
+        basin, not to bad detections). None keeps every measurement.
+    max_odometry_rms : float
+        Largest plausible RMS of the whitened odometry residuals for a ``converged`` verdict at the first
+        minimum found; above it the solver restarts, and accepts the minimum if a second start reaches it too.
+    with_covariance : bool
+        Also compute per-mic mic-frame location std from the Fisher information at the estimate.
+
+    Returns
+    -------
+    CalibrationResult
+    """
+    if method not in ("hybrid", "baseline"):
+        raise ValueError(f"{method=} must be 'hybrid' or 'baseline'")
+    if loss not in ("linear", "soft_l1", "huber"):
+        raise ValueError(f"{loss=} must be 'linear', 'soft_l1' or 'huber'")
+    if int(max_iterations) < 1 or int(n_starts) < 1:
+        raise ValueError(f"{max_iterations=} and {n_starts=} must be >= 1")
+    if not (f_scale > 0 and max_residual_scale > 0):
+        raise ValueError(f"{f_scale=} and {max_residual_scale=} must be > 0 (sigmas)")
+    rng = np.random.default_rng(rng)
+    rot = _odometry_gauge(problem)  # odometry frame -> gauge frame
+    odo_gauge = problem.odometry_m @ rot.T
+    lay = _Layout(problem, method, "sound", odo_gauge)
+    events_odo = _integrated_odometry(odo_gauge)
+    scale_m = max(1.0, float(np.max(np.ptp(events_odo, axis=0))))
+
+    def start_from(k: int) -> np.ndarray:
+        """Start 0: ``init`` if given. Then the built-in initialisation, later ones perturbed (hybrid) or
+        with random mics around the odometry (baseline)."""
+        if k == 0 and init is not None:
+            if init.mic_positions_m.shape != (lay.n, 3) or init.event_positions_m.shape != (lay.k, 3):
+                raise ValueError("init shapes do not match the problem")
+            return _apply_gauge(lay, lay.pack(init.mic_positions_m @ rot.T, init.offsets_s,
+                                              init.drifts_ppm * _PPM, init.event_positions_m @ rot.T))
+        p = _smart_init(lay, odo_gauge, method, rng, n_grid)
+        n_smart = 1 if init is None else 2
+        if method == "hybrid" and k >= n_smart:
+            p[:3 * lay.n] += rng.normal(0.0, 0.3 * scale_m, 3 * lay.n)
+        return _apply_gauge(lay, p)
+
+    best = None
+    total_it = 0
+    starts = 0
+    certified_costs: list[float] = []  # certified but implausible minima; reached twice = confirmed
+    p0 = start_from(0)
+    for k in range(int(n_starts)):
+        run = _levenberg_marquardt(lay, p0, loss=loss, f_scale=f_scale, max_iterations=int(max_iterations),
+                                   limit_m=10.0 * scale_m + 10.0, max_step_m=scale_m)
+        starts += 1
+        total_it += run.n_iterations
+        finite = bool(np.all(np.isfinite(run.p)))
+        mask = None
+        if run.status == "converged" and finite and reject_sigma is not None:
+            # gross mis-detections: drop them and polish (the robust loss alone keeps a constant pull)
+            r = lay.residuals(run.p)
+            m = (np.abs(r) <= reject_sigma * max(1.0, 1.4826 * float(np.median(np.abs(r))))).astype(float)
+            m[lay.n_s + lay.n_m:] = 1.0  # only chirp detections can be gross; odometry stays
+            if 0.9 <= m[:lay.n_s + lay.n_m].mean() < 1.0:
+                polish = _levenberg_marquardt(lay, run.p, loss=loss, f_scale=f_scale,
+                                              max_iterations=int(max_iterations), limit_m=10.0 * scale_m + 10.0,
+                                              max_step_m=scale_m, mask=m)
+                total_it += polish.n_iterations
+                if polish.status == "converged":
+                    run, mask = polish, m
+        diag = _diagnostics(lay, run.p, mask) if finite else None
+        cost_cmp = _loss(lay.residuals(run.p), loss, f_scale)[0] if finite else np.inf
+        next_p0 = None
+        if run.status == "converged" and finite:
+            f_now = _adaptive_scale(lay.residuals(run.p), f_scale, loss)
+            events = lay.unpack(run.p)[3]
+            moved, q = _certify(lay, run.p, method, _grid(events, n_grid), f_now)
+            if moved:
+                verdict = "suspect_local_minimum"
+                next_p0 = _apply_gauge(lay, q)
+            elif _plausible(diag, max_residual_scale, max_odometry_rms):
+                verdict = "converged"
+            elif any(abs(cost_cmp - c0) <= 1e-6 * max(cost_cmp, 1.0) for c0 in certified_costs):
+                verdict = "converged"  # the same certified minimum from two different starts
+            else:
+                verdict = "suspect_local_minimum"
+                certified_costs.append(cost_cmp)
+        else:
+            verdict = run.status
+        rank = {"converged": 0, "suspect_local_minimum": 1, "max_iterations": 2, "diverged": 3}[verdict]
+        cand = (rank, cost_cmp if np.isfinite(cost_cmp) else np.inf, run, verdict, diag, mask)
+        if best is None or cand[:2] < best[:2]:
+            best = cand
+        logger.debug("start %d: %s cost=%.4g it=%d", k, verdict, run.cost, run.n_iterations)
+        if verdict == "converged":
+            break
+        p0 = next_p0 if next_p0 is not None else start_from(k + 1)
+    _, _, run, verdict, diag, mask = best
+    if diag is None:
+        diag = {"chi2_per_dof": np.inf, "residual_scale": np.inf, "inlier_fraction": 0.0}
+    x, tau, delta, s = lay.unpack(run.p)
+    scene = Scene(mic_positions_m=x @ rot, event_positions_m=s @ rot, offsets_s=tau - tau[0], drifts_ppm=delta / _PPM)
+    std = None
+    if with_covariance and verdict != "diverged":
+        std = _mic_frame_std(lay, run.p, mask)
+    out_s = np.zeros((lay.k - 1, lay.n), dtype=bool)
+    out_m = np.zeros((lay.k, lay.n), dtype=bool)
+    if mask is not None:
+        rej = mask == 0
+        out_s[lay.s_ev[rej[:lay.n_s]], lay.s_mic[rej[:lay.n_s]]] = True
+        rm = rej[lay.n_s:lay.n_s + lay.n_m]
+        out_m[lay.m_ev[rm], lay.m_mic[rm]] = True
+    out_s.setflags(write=False)
+    out_m.setflags(write=False)
+    return CalibrationResult(scene=scene, method=method, verdict=verdict, cost=float(run.cost),
+                             chi2_per_dof=float(diag["chi2_per_dof"]), residual_scale=float(diag["residual_scale"]),
+                             inlier_fraction=float(diag["inlier_fraction"]), n_iterations=int(total_it),
+                             n_starts_used=starts, outliers_tdoa_events=out_s, outliers_tdoa_mics=out_m,
+                             mic_frame_location_std_m=None if std is None else _readonly(std))
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Covariance, CRLB
+# --------------------------------------------------------------------------------------------------------------
+def _covariance(lay: _Layout, p: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
+    """Full-vector covariance ``F^-1`` (eq. 13; zero rows/columns for gauge-fixed parameters)."""
+    a, _ = lay.normal_equations(p, mask)
+    try:
+        ci = scipy.linalg.cho_solve(scipy.linalg.cho_factor(a), np.eye(lay.n_free))
+    except np.linalg.LinAlgError:
+        ci = np.linalg.pinv(a)
+    cov = np.zeros((lay.n_full, lay.n_full))
+    idx = np.nonzero(lay.free)[0]
+    cov[np.ix_(idx, idx)] = ci
+    return cov
+
+
+def _frame_jacobian(lay: _Layout, p: np.ndarray, *, rotate_only: bool) -> np.ndarray:
+    """Jacobian of the mic-frame vector (eq. 18) w.r.t. the full parameter vector."""
+    n = lay.n
+    x, tau, delta, _ = lay.unpack(p)
+    r = _frame_of(x[0], x[1], x[2])
+    g = np.zeros((5 * n, lay.n_full))
+    for i in range(n):
+        g[3 * i:3 * i + 3, 3 * i:3 * i + 3] = r
+    if not rotate_only:
+        for i in range(n):
+            g[3 * i:3 * i + 3, 0:3] -= r  # translation by x_0
+        eps = 1e-7
+        for col in range(9):  # rotation depends on x_0, x_1, x_2
+            dx = np.zeros((n, 3))
+            dx.ravel()[col] = eps
+            rp = _frame_of(*(x + dx)[:3])
+            rm = _frame_of(*(x - dx)[:3])
+            g[:3 * n, col] += (((x - x[0]) @ rp.T) - ((x - x[0]) @ rm.T)).ravel() / (2 * eps)
+    g[3 * n + np.arange(n), lay.o_tau + np.arange(n)] = 1.0
+    g[3 * n + np.arange(n), lay.o_tau] -= 1.0
+    g[4 * n + np.arange(n), lay.o_del + np.arange(n)] = 1.0
+    g[4 * n + np.arange(n), lay.o_del] -= 1.0
+    return g
+
+
+def _d_crlb(cov_mic: np.ndarray, n: int) -> tuple[float, float, float]:
+    """Eq. (16) as in ``compute_CRLB.m``: x of mic 1, x-y of mic 2, x-y-z of mics >= 3; offsets, drifts."""
+    v = np.diag(cov_mic)
+    loc = [v[3], v[6] + v[7]] + [v[3 * i:3 * i + 3].sum() for i in range(3, n)]
+    off = v[3 * n + 1:4 * n]
+    dri = v[4 * n + 1:5 * n]
+    return float(np.sqrt(np.mean(loc))), float(np.sqrt(np.mean(off))), float(np.sqrt(np.mean(dri)) / _PPM)
+
+
+def _mic_frame_std(lay: _Layout, p: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
+    cov = _covariance(lay, p, mask)
+    g = _frame_jacobian(lay, p, rotate_only=False)
+    cm = g @ cov @ g.T
+    v = np.diag(cm)[:3 * lay.n].reshape(lay.n, 3)
+    return np.sqrt(np.maximum(v.sum(1), 0.0))
+
+
+def _sound_frame_truth(truth: Scene) -> Scene:
+    s = truth.event_positions_m
+    r = _frame_of(s[0], s[1], s[2])
+    return Scene((truth.mic_positions_m - s[0]) @ r.T, (s - s[0]) @ r.T, truth.offsets_s, truth.drifts_ppm)
+
+
+def crlb(problem: HybridTdoaProblem, truth: Scene, *, method: Method = "hybrid") -> CrlbResult:
+    """Cramer-Rao bound ``C = (J^T W^-1 J)^-1`` (eqs. 11-13) at the true scene, scored in the mic frame.
+
+    Only the structure of ``problem`` is used (which measurements exist, intervals, noise levels, speed of
+    sound), not the measured values. Reports both the full-Jacobian frame change and the authors' variant
+    (see :class:`CrlbResult`).
+    """
+    n = problem.n_mics
+    if truth.mic_positions_m.shape != (n, 3) or truth.event_positions_m.shape != (problem.n_events, 3):
+        raise ValueError("truth shapes do not match the problem")
+    t = _sound_frame_truth(truth)
+    lay = _Layout(problem, method, "sound")
+    p = lay.pack(t.mic_positions_m, t.offsets_s - t.offsets_s[0],
+                 t.drifts_ppm * _PPM - (t.drifts_ppm[0] * _PPM if method == "baseline" else 0.0),
+                 t.event_positions_m)
+    cov = _covariance(lay, p)
+    cm = _frame_jacobian(lay, p, rotate_only=False) @ cov @ _frame_jacobian(lay, p, rotate_only=False).T
+    full = _d_crlb(cm, n)
+    if method == "hybrid":
+        g = _frame_jacobian(lay, p, rotate_only=True)
+        authors = _d_crlb(g @ cov @ g.T, n)
+    else:  # authors' baseline: parameterised directly in the true mic frame (sg_generation.m)
+        mf = to_mic_frame(truth)
+        lay_m = _Layout(problem, method, "mic")
+        pm = lay_m.pack(mf.mic_positions_m, mf.offsets_s, mf.drifts_ppm * _PPM, mf.event_positions_m)
+        cov_m = _covariance(lay_m, pm)
+        g = _frame_jacobian(lay_m, pm, rotate_only=True)
+        authors = _d_crlb(g @ cov_m @ g.T, n)
+    per_mic = np.sqrt(np.maximum(np.diag(cm)[:3 * n].reshape(n, 3).sum(1), 0.0))
+    return CrlbResult(method=method, location_std_m=full[0], offset_std_s=full[1], drift_std_ppm=full[2],
+                      location_std_m_authors=authors[0], offset_std_s_authors=authors[1],
+                      drift_std_ppm_authors=authors[2], per_mic_location_std_m=_readonly(per_mic),
+                      mic_frame_covariance=_readonly(cm))
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Noise levels (Appendix B) and simulation
+# --------------------------------------------------------------------------------------------------------------
+def estimate_noise_levels(problem: HybridTdoaProblem, scene: Scene) -> NoiseLevels:
+    """Appendix B: TDOA-S / TDOA-M noise std given a scene (the truth, or a calibration estimate).
+
+    TDOA-S of mic ``i``: remove the geometry and the interval, fit ``delta_i`` by least squares
+    (``sum dt*r / sum dt^2``), std of the rest with one degree of freedom removed. TDOA-M of mic ``i >= 1``:
+    remove the geometry, fit offset + drift ``[1, t_j]`` by least squares, two degrees removed.
+    The pooled values use all residuals.
+    """
+    n, c = problem.n_mics, problem.speed_of_sound_m_s
+    x, s = scene.mic_positions_m, scene.event_positions_m
+    d = np.linalg.norm(x[:, None, :] - s[None, :, :], axis=2)  # (N, K)
+    ev = np.full(n, np.nan)
+    ss_e, dof_e = 0.0, 0
+    if problem.tdoa_events_s is not None:
+        for i in range(n):
+            y = problem.tdoa_events_s[:, i]
+            ok = np.isfinite(y)
+            if ok.sum() < 2:
+                continue
+            dt = problem.interval_s[ok]
+            e = y[ok] - dt - (d[i, 1:][ok] - d[i, :-1][ok]) / c
+            res = e - (e @ dt) / (dt @ dt) * dt
+            ev[i] = np.sqrt(res @ res / (len(res) - 1))
+            ss_e += res @ res
+            dof_e += len(res) - 1
+    mi = np.full(n, np.nan)
+    ss_m, dof_m = 0.0, 0
+    t = problem.emission_times_s
+    for i in range(1, n):
+        y = problem.tdoa_mics_s[:, i]
+        ok = np.isfinite(y)
+        if ok.sum() < 3:
+            continue
+        e = y[ok] - (d[i, ok] - d[0, ok]) / c
+        a = np.stack([np.ones(ok.sum()), t[ok]], 1)
+        coef, *_ = np.linalg.lstsq(a, e, rcond=None)
+        res = e - a @ coef
+        mi[i] = np.sqrt(res @ res / (len(res) - 2))
+        ss_m += res @ res
+        dof_m += len(res) - 2
+    return NoiseLevels(tdoa_events_std_s=float(np.sqrt(ss_e / dof_e)) if dof_e else float("nan"),
+                       tdoa_mics_std_s=float(np.sqrt(ss_m / dof_m)) if dof_m else float("nan"),
+                       per_mic_events_std_s=_readonly(ev), per_mic_mics_std_s=_readonly(mi))
+
+
+def simulate_problem(truth: Scene, interval_s, *, sigma_tdoa_s: float, sigma_odo_m: float,
+                     rng: np.random.Generator | int | None = None,
+                     speed_of_sound_m_s: float = SPEED_OF_SOUND_M_S, noise_free: bool = False) -> HybridTdoaProblem:
+    """Noisy TDOA-S, TDOA-M and odometry of a true scene (eqs. 4-6, 9; i.i.d. Gaussian noise).
+
+    Odometry is expressed in the frame of ``truth``. With ``noise_free`` the measurements are exact and the
+    sigmas only set the weights.
+    """
+    rng = np.random.default_rng(rng)
+    scale = 0.0 if noise_free else 1.0
+    x, s = truth.mic_positions_m, truth.event_positions_m
+    n, k = x.shape[0], s.shape[0]
+    iv = np.asarray(interval_s, float)
+    t = np.concatenate([[0.0], np.cumsum(iv)])
+    c = speed_of_sound_m_s
+    delta = truth.drifts_ppm * _PPM
+    d = np.linalg.norm(x[None, :, :] - s[:, None, :], axis=2)  # (K, N)
+    toa = d / c + truth.offsets_s[None, :] + (1 + delta[None, :]) * t[:, None]  # eq. (4)
+    tdoa_s = ((d[1:] - d[:-1]) / c + (1 + delta[None, :]) * iv[:, None]
+              + scale * rng.normal(0, sigma_tdoa_s, (k - 1, n)))  # eq. (5)
+    tdoa_m = toa - toa[:, :1] + scale * rng.normal(0, sigma_tdoa_s, (k, n))  # eq. (6)
+    tdoa_m[:, 0] = np.nan
+    odo = s[1:] - s[:-1] + scale * rng.normal(0, sigma_odo_m, (k - 1, 3))  # eq. (9)
+    return HybridTdoaProblem(tdoa_events_s=tdoa_s, tdoa_mics_s=tdoa_m, odometry_m=odo, interval_s=iv,
+                             sigma_tdoa_s=sigma_tdoa_s, sigma_odo_m=sigma_odo_m, speed_of_sound_m_s=c)

@@ -1,0 +1,317 @@
+"""Coarse alignment of devices whose recordings start seconds apart, and the aligned block stream.
+
+Devices are first aligned to the reference (device 0) to within a few samples by cross-correlating
+their energy envelopes (as the TOA paper did for its smartphones), then refined by a PHAT-weighted
+cross-correlation of the waveforms around the envelope lag. The remaining (fine) relative TOA is
+left to the frame-based GCC-PHAT and the TOA estimator. Offsets are re-checked while streaming.
+
+Convention: ``offsets_samples[i] = o`` means device ``i``'s sample ``n + o`` (at the working rate)
+lines up with the reference's sample ``n``; ``o / working_rate_hz`` is the coarse relative TOA.
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.fft
+import scipy.signal
+
+from .condition import SILENCE_RMS
+from .messages import Block, FrameFlag
+
+log = logging.getLogger(__name__)
+
+
+def energy_envelope(x: np.ndarray, *, sample_rate_hz: float, hop_s: float = 0.01) -> np.ndarray:
+    """Log-energy envelope of a signal, zero mean and unit variance.
+
+    Parameters
+    ----------
+    x : ndarray, shape (n_samples,), float
+    sample_rate_hz : float
+    hop_s : float
+        Envelope resolution in seconds.
+
+    Returns
+    -------
+    ndarray, shape (n_samples // hop,), float64
+    """
+    hop = max(1, int(round(hop_s * sample_rate_hz)))
+    n = len(x) // hop
+    if n == 0:
+        return np.zeros(0)
+    e = np.log10(np.mean(np.square(x[: n * hop].reshape(n, hop), dtype=np.float64), axis=1) + 1e-12)
+    floor = np.percentile(e, 10) + 0.6
+    e = np.maximum(e, floor)  # ignore the noise floor (and 6 dB above it): only what rises above it aligns
+    e -= e.mean()
+    std = e.std()
+    return e / std if std > 0 else e
+
+
+def normalised_xcorr(e: np.ndarray, e_ref: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pearson correlation of ``e[n + lag]`` with ``e_ref[n]`` over their overlap, for every lag.
+
+    Returns
+    -------
+    (score, lags) : ndarray, shape (len(e) + len(e_ref) - 1,)
+    """
+    n_e, n_r = len(e), len(e_ref)
+    s_xy = scipy.signal.correlate(e, e_ref, mode="full", method="fft")
+    lags = scipy.signal.correlation_lags(n_e, n_r, mode="full")
+    lo_r = np.maximum(0, -lags)                 # overlap in e_ref: [lo_r, hi_r)
+    hi_r = np.minimum(n_r, n_e - lags)
+    n = np.clip(hi_r - lo_r, 1, None).astype(float)
+    c_r, c_r2 = np.r_[0, np.cumsum(e_ref)], np.r_[0, np.cumsum(e_ref ** 2)]
+    c_e, c_e2 = np.r_[0, np.cumsum(e)], np.r_[0, np.cumsum(e ** 2)]
+    s_r, s_r2 = c_r[hi_r] - c_r[lo_r], c_r2[hi_r] - c_r2[lo_r]
+    s_e, s_e2 = c_e[hi_r + lags] - c_e[lo_r + lags], c_e2[hi_r + lags] - c_e2[lo_r + lags]
+    cov = s_xy - s_e * s_r / n
+    var = np.clip(s_e2 - s_e ** 2 / n, 0, None) * np.clip(s_r2 - s_r ** 2 / n, 0, None)
+    score = np.where(var > 1e-12, cov / np.sqrt(np.maximum(var, 1e-300)), 0.0)
+    return score, lags
+
+
+def coarse_offset(x_ref: np.ndarray, x: np.ndarray, *, sample_rate_hz: float, max_offset_s: float,
+                  envelope_hop_s: float = 0.01, refine_s: float = 0.05) -> tuple[int, float]:
+    """Offset of ``x`` relative to ``x_ref`` in samples, and a quality in [0, 1].
+
+    ``x[n + offset]`` lines up with ``x_ref[n]``. The quality is the normalised envelope correlation
+    at the chosen lag (about 0 for unrelated signals, up to 1).
+    """
+    hop = max(1, int(round(envelope_hop_s * sample_rate_hz)))
+    e_ref = energy_envelope(x_ref, sample_rate_hz=sample_rate_hz, hop_s=envelope_hop_s)
+    e = energy_envelope(x, sample_rate_hz=sample_rate_hz, hop_s=envelope_hop_s)
+    if len(e_ref) < 4 or len(e) < 4 or not e_ref.any() or not e.any():
+        return 0, 0.0
+    score, lags = normalised_xcorr(e, e_ref)
+    max_lag = int(max_offset_s / envelope_hop_s)
+    overlap = np.minimum(len(e_ref), len(e) - lags) - np.maximum(0, -lags)
+    min_overlap = max(4, int(0.25 * min(len(e), len(e_ref))))
+    ok = (np.abs(lags) <= max_lag) & (overlap >= min_overlap)
+    if not ok.any():
+        return 0, 0.0
+    # rank by correlation times the square root of the overlap share, so that a short overlap that
+    # happens to correlate does not beat the long one of the true offset
+    rank = np.where(ok, score * np.sqrt(overlap / min(len(e), len(e_ref))), -np.inf)
+    k = int(np.argmax(rank))
+    quality = float(np.clip(score[k], 0.0, 1.0))
+    coarse = int(lags[k]) * hop
+    # refine at sample resolution: PHAT cross-correlation of the waveforms around the envelope lag
+    fine = refine_offset(x_ref, x, coarse_samples=coarse, search_samples=int(refine_s * sample_rate_hz))
+    return fine, quality
+
+
+def refine_offset(x_ref: np.ndarray, x: np.ndarray, *, coarse_samples: int, search_samples: int) -> int:
+    """Sample-accurate offset near ``coarse_samples`` by PHAT-weighted cross-correlation."""
+    start_ref = max(0, -coarse_samples)
+    start = start_ref + coarse_samples
+    n = min(len(x_ref) - start_ref, len(x) - start)
+    if n <= 2 * search_samples:
+        return coarse_samples
+    a = x_ref[start_ref:start_ref + n].astype(np.float32)
+    b = x[start:start + n].astype(np.float32)
+    n_fft = scipy.fft.next_fast_len(n + search_samples)
+    A = scipy.fft.rfft(a, n_fft)
+    B = scipy.fft.rfft(b, n_fft)
+    G = B * np.conj(A)
+    G /= np.abs(G) + 1e-12
+    r = scipy.fft.irfft(G, n_fft)
+    lags = np.r_[np.arange(0, search_samples + 1), np.arange(-search_samples, 0)]
+    vals = np.r_[r[: search_samples + 1], r[n_fft - search_samples:]]
+    # if x[n + coarse + d] = x_ref[n] then b[m + d] = a[m]: the correlation peaks at lag d
+    return coarse_samples + int(lags[int(np.argmax(vals))])
+
+
+@dataclass
+class AlignmentEvent:
+    """A change of a device's coarse offset while streaming."""
+
+    time_s: float
+    device_id: int
+    old_offset_samples: int
+    new_offset_samples: int
+    reason: str
+
+
+class Aligner:
+    """Buffers each device at the working rate and emits time-aligned hop blocks.
+
+    Parameters
+    ----------
+    n_devices : int
+    sample_rate_hz : float
+        Working rate.
+    hop_samples : int
+        Length of each emitted block.
+    align_window_s : float
+        Audio collected from every device before the first alignment (start-up latency of a live
+        stream; a replay that ends sooner aligns on what it has).
+    max_offset_s : float
+        Largest start offset searched, in seconds.
+    min_quality : float
+        Devices whose envelope correlation with the reference stays below this are left out
+        (valid = False) with a one-sentence message.
+    recheck_s : float or None
+        Re-check the offsets on the last ``align_window_s`` of audio every ``recheck_s`` seconds.
+    recheck_tolerance_s : float
+        A re-check moves a device only if its offset changed by more than this.
+    """
+
+    def __init__(self, n_devices: int, *, sample_rate_hz: float, hop_samples: int, align_window_s: float = 8.0,
+                 max_offset_s: float = 4.0, min_quality: float = 0.15, recheck_s: float | None = 10.0,
+                 recheck_tolerance_s: float = 0.01) -> None:
+        if n_devices < 1:
+            raise ValueError(f"{n_devices=} must be >= 1")
+        if hop_samples < 1:
+            raise ValueError(f"{hop_samples=} must be >= 1")
+        if not align_window_s > 0 or not max_offset_s >= 0:
+            raise ValueError(f"{align_window_s=} must be > 0 s and {max_offset_s=} >= 0 s")
+        self.n_devices = n_devices
+        self.sample_rate_hz = float(sample_rate_hz)
+        self.hop_samples = int(hop_samples)
+        self.window_samples = int(align_window_s * sample_rate_hz)
+        self.max_offset_s = float(max_offset_s)
+        self.min_quality = float(min_quality)
+        self.recheck_blocks = None if not recheck_s else max(1, int(recheck_s * sample_rate_hz / hop_samples))
+        self.recheck_tolerance_samples = int(recheck_tolerance_s * sample_rate_hz)
+        self._bufs = [np.zeros(0, np.float32) for _ in range(n_devices)]
+        self._buf_start = [0] * n_devices     # device sample index of _bufs[d][0]
+        self._received = [0] * n_devices
+        self._ended = [False] * n_devices
+        self.offsets_samples = np.zeros(n_devices, dtype=np.int64)
+        self.quality = np.ones(n_devices)
+        self.aligned = np.ones(n_devices, dtype=bool)
+        self.ready = False
+        self.next_block = 0
+        self.events: list[AlignmentEvent] = []
+        self.messages: list[str] = []
+
+    # input -----------------------------------------------------------------------------------
+    def push(self, device_id: int, samples: np.ndarray, flags: FrameFlag = FrameFlag.NONE) -> list[Block]:
+        """Add working-rate samples of one device; return the blocks that became complete."""
+        if len(samples):
+            self._bufs[device_id] = np.concatenate([self._bufs[device_id], samples.astype(np.float32)])
+            self._received[device_id] += len(samples)
+        if flags & FrameFlag.LAST:
+            self._ended[device_id] = True
+        return self._emit()
+
+    def finish(self) -> list[Block]:
+        """Mark every device as ended and return the remaining blocks."""
+        self._ended = [True] * self.n_devices
+        return self._emit()
+
+    # alignment -------------------------------------------------------------------------------
+    def _initial_alignment(self) -> None:
+        ref = self._bufs[0][: self.window_samples]
+        for d in range(1, self.n_devices):
+            x = self._bufs[d][: self.window_samples + int(self.max_offset_s * self.sample_rate_hz)]
+            off, q = coarse_offset(ref, x, sample_rate_hz=self.sample_rate_hz, max_offset_s=self.max_offset_s)
+            self.offsets_samples[d], self.quality[d] = off, q
+            if q < self.min_quality:
+                self.aligned[d] = False
+                msg = (f"Device {d} shares no clear sound with the reference within ±{self.max_offset_s:g} s "
+                       f"(envelope correlation {q:.2f}); it is left out of the beamformer.")
+                self.messages.append(msg)
+                log.warning(msg)
+        self.ready = True
+
+    def _recheck(self) -> None:
+        t_s = self.next_block * self.hop_samples / self.sample_rate_hz
+        ref_end = self.next_block * self.hop_samples
+        ref_start = max(0, ref_end - self.window_samples)
+        ref = self._slice(0, ref_start, ref_end)
+        if ref is None or np.sqrt(np.mean(ref.astype(np.float64) ** 2)) < SILENCE_RMS:
+            return
+        for d in range(1, self.n_devices):
+            o = int(self.offsets_samples[d])
+            x = self._slice(d, ref_start + o, ref_end + o)
+            if x is None:
+                continue
+            delta, q = coarse_offset(ref, x, sample_rate_hz=self.sample_rate_hz,
+                                     max_offset_s=min(self.max_offset_s, 0.5 * len(ref) / self.sample_rate_hz))
+            if q < self.min_quality:
+                continue
+            if not self.aligned[d]:
+                self.aligned[d] = True
+                self.quality[d] = q
+                self.shift(d, delta, reason="device became audible with the reference; aligned now")
+            elif abs(delta) > self.recheck_tolerance_samples:
+                self.shift(d, delta, reason="periodic re-check of the coarse offset")
+        del t_s
+
+    def shift(self, device_id: int, delta_samples: int, *, reason: str) -> None:
+        """Move a device's coarse offset by ``delta_samples`` from the next block on."""
+        if delta_samples == 0:
+            return
+        old = int(self.offsets_samples[device_id])
+        self.offsets_samples[device_id] = old + int(delta_samples)
+        t_s = self.next_block * self.hop_samples / self.sample_rate_hz
+        self.events.append(AlignmentEvent(t_s, device_id, old, old + int(delta_samples), reason))
+        log.info("t=%.2f s: device %d coarse offset %d -> %d samples (%s).", t_s, device_id, old,
+                 old + int(delta_samples), reason)
+
+    # output ----------------------------------------------------------------------------------
+    def _slice(self, d: int, start: int, stop: int) -> np.ndarray | None:
+        """Device samples [start, stop) (zeros outside what was received), None if none is there."""
+        b0 = self._buf_start[d]
+        buf = self._bufs[d]
+        lo, hi = max(start, b0), min(stop, b0 + len(buf))
+        if hi <= lo:
+            return None
+        out = np.zeros(stop - start, np.float32)
+        out[lo - start:hi - start] = buf[lo - b0:hi - b0]
+        return out
+
+    def _end_block(self) -> int:
+        """Number of blocks in the whole stream once every device has ended: the output covers the
+        reference device's recording."""
+        return int(np.ceil(self._received[0] / self.hop_samples))
+
+    def _emit(self) -> list[Block]:
+        if not self.ready:
+            have = all(self._ended[d] or self._received[d] >= self.window_samples
+                       + (int(self.max_offset_s * self.sample_rate_hz) if d else 0) for d in range(self.n_devices))
+            if not have:
+                return []
+            self._initial_alignment()
+        blocks = []
+        hop = self.hop_samples
+        all_ended = all(self._ended)
+        while True:
+            k = self.next_block
+            if all_ended:
+                if k >= self._end_block():
+                    break
+            else:
+                need = [(k + 1) * hop + self.offsets_samples[d] for d in range(self.n_devices)]
+                if any(not self._ended[d] and self._received[d] < need[d] for d in range(self.n_devices)):
+                    break
+            if self.recheck_blocks and k > 0 and k % self.recheck_blocks == 0:
+                self._recheck()
+            samples = np.zeros((hop, self.n_devices), np.float32)
+            valid = np.zeros(self.n_devices, dtype=bool)
+            for d in range(self.n_devices):
+                start = k * hop + int(self.offsets_samples[d])
+                x = self._slice(d, start, start + hop)
+                if x is None:
+                    continue
+                samples[:, d] = x
+                covered = min(start + hop, self._received[d]) - max(start, self._buf_start[d], 0)
+                rms = float(np.sqrt(np.mean(np.square(x, dtype=np.float64))))
+                valid[d] = bool((self.aligned[d] or d == 0) and covered >= hop // 2 and rms >= SILENCE_RMS)
+            blocks.append(Block(seq=k, first_sample=k * hop, sample_rate_hz=self.sample_rate_hz, samples=samples,
+                                valid=valid, offsets_samples=self.offsets_samples.copy()))
+            self.next_block += 1
+            self._trim()
+        return blocks
+
+    def _trim(self) -> None:
+        keep = self.window_samples + self.hop_samples
+        for d in range(self.n_devices):
+            pos = self.next_block * self.hop_samples + int(self.offsets_samples[d])
+            cut = pos - keep - self._buf_start[d]
+            if cut > 4 * keep:  # amortise the copy
+                self._bufs[d] = self._bufs[d][cut:]
+                self._buf_start[d] += cut

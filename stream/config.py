@@ -1,0 +1,135 @@
+"""Engine options: one dataclass, filled from defaults, a fixture's ``[engine]`` table, a TOML config
+file and command-line flags (in that order of precedence, the last wins).
+
+A TOML config uses the same names as the long CLI flags, with underscores::
+
+    estimator = "kalman"
+    frame_samples = 512
+    hop_samples = 128
+    working_rate_hz = 16000
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import tomllib
+from dataclasses import dataclass, fields
+from pathlib import Path
+from typing import Any, Literal
+
+from .errors import ConfigError
+
+Estimator = Literal["subset", "pinv", "kalman", "smoother"]
+Weighting = Literal["equal", "adaptive"]
+
+PAPER_FRAME_S = 4096 / 48000  # the TOA paper's analysis frame: 4096 samples at 48 kHz (85.3 ms)
+
+
+@dataclass(frozen=True)
+class EngineConfig:
+    """All engine options (units in the names).
+
+    ``working_rate_hz``, ``frame_samples``, ``hop_samples`` and ``min_confidence`` may be None: the
+    working rate is then the reference device's rate, the frame the power of two closest to 85.3 ms
+    (4096 at 48 kHz, as in the TOA paper), the hop a quarter of the frame (75 % overlap), and the
+    smallest usable GCC-PHAT peak ``5 / sqrt(frame_samples)``.
+    """
+
+    estimator: Estimator = "kalman"
+    working_rate_hz: float | None = None
+    frame_samples: int | None = None
+    hop_samples: int | None = None
+    max_tdoa_s: float = 0.012
+    weighting: Weighting = "adaptive"
+    # Kalman TOA (eqs. 13-17)
+    accel_std_s_per_s2: float = 1e-3
+    tdoa_std_s: float = 5e-4
+    gate_probability: float = 0.999
+    min_confidence: float | None = None
+    smoother_lag_frames: int = 4
+    # coarse alignment
+    align_window_s: float = 8.0
+    max_offset_s: float = 4.0
+    align_recheck_s: float = 10.0
+    # replay
+    speed: float | None = None
+    block_s: float = 0.02
+    # outputs
+    plots: bool = True
+    progress: bool = True
+
+    def resolved(self, reference_rate_hz: float) -> "EngineConfig":
+        """Fill in the automatic values for a given reference device rate and validate everything."""
+        rate = float(self.working_rate_hz or reference_rate_hz)
+        frame = self.frame_samples or int(2 ** round(math.log2(PAPER_FRAME_S * rate)))
+        hop = self.hop_samples or frame // 4
+        # a PHAT peak must stand about 5 standard deviations above the correlation of unrelated
+        # noise, whose spread is 1/sqrt(frame_samples)
+        min_conf = self.min_confidence if self.min_confidence is not None else 5.0 / math.sqrt(frame)
+        cfg = dataclasses.replace(self, working_rate_hz=rate, frame_samples=int(frame), hop_samples=int(hop),
+                                  min_confidence=float(min_conf))
+        cfg.validate()
+        return cfg
+
+    def validate(self) -> None:
+        """Raise ConfigError with the option, its value and the condition it breaks."""
+        if self.estimator not in ("subset", "pinv", "kalman", "smoother"):
+            raise ConfigError(f"estimator={self.estimator!r} must be one of subset, pinv, kalman, smoother")
+        if self.weighting not in ("equal", "adaptive"):
+            raise ConfigError(f"weighting={self.weighting!r} must be 'equal' or 'adaptive'")
+        if self.working_rate_hz is not None and not 1000 <= self.working_rate_hz <= 384000:
+            raise ConfigError(f"working_rate_hz={self.working_rate_hz} must be in 1000..384000 Hz")
+        if self.frame_samples is not None and not 32 <= self.frame_samples <= 65536:
+            raise ConfigError(f"frame_samples={self.frame_samples} must be in 32..65536")
+        if self.hop_samples is not None and self.frame_samples is not None and not (
+                1 <= self.hop_samples <= self.frame_samples // 2 and self.frame_samples % self.hop_samples == 0):
+            raise ConfigError(f"hop_samples={self.hop_samples} must divide frame_samples={self.frame_samples} "
+                              "and be at most half of it")
+        for name in ("max_tdoa_s", "accel_std_s_per_s2", "tdoa_std_s", "align_window_s", "block_s"):
+            if not getattr(self, name) > 0:
+                raise ConfigError(f"{name}={getattr(self, name)} must be > 0")
+        if not 0 < self.gate_probability < 1:
+            raise ConfigError(f"gate_probability={self.gate_probability} must be in (0, 1)")
+        if self.speed is not None and not self.speed > 0:
+            raise ConfigError(f"speed={self.speed} must be > 0 (or absent for as fast as possible)")
+        if self.smoother_lag_frames < 1:
+            raise ConfigError(f"smoother_lag_frames={self.smoother_lag_frames} must be >= 1")
+        if self.frame_samples and self.working_rate_hz and self.max_tdoa_s * self.working_rate_hz >= self.frame_samples / 2:
+            raise ConfigError(f"max_tdoa_s={self.max_tdoa_s} must be shorter than half a frame "
+                              f"({self.frame_samples / 2 / self.working_rate_hz:.4f} s)")
+
+    def as_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+
+def option_names() -> list[str]:
+    return [f.name for f in fields(EngineConfig)]
+
+
+def merge(config: EngineConfig, values: dict[str, Any], *, source: str) -> EngineConfig:
+    """Return ``config`` with ``values`` applied; unknown keys raise a ConfigError naming ``source``."""
+    known = {f.name: f for f in fields(EngineConfig)}
+    clean = {}
+    for key, value in values.items():
+        key = key.replace("-", "_")
+        if key not in known:
+            raise ConfigError(f"{source}: unknown option {key!r}; known options: {', '.join(known)}")
+        if value is not None:
+            clean[key] = value
+    try:
+        return dataclasses.replace(config, **clean)
+    except TypeError as err:  # pragma: no cover - dataclasses.replace only fails on unknown names
+        raise ConfigError(f"{source}: {err}") from err
+
+
+def load_toml(path: str | Path) -> dict[str, Any]:
+    """Read a TOML config file; a missing or malformed file gives one clear sentence."""
+    path = Path(path)
+    try:
+        with open(path, "rb") as fh:
+            data = tomllib.load(fh)
+    except FileNotFoundError:
+        raise ConfigError(f"Config file {path} does not exist.") from None
+    except tomllib.TOMLDecodeError as err:
+        raise ConfigError(f"Config file {path} is not valid TOML: {err}.") from None
+    return data.get("engine", data) if isinstance(data.get("engine"), dict) else data

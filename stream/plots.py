@@ -1,0 +1,191 @@
+"""PNG figures for TOA tracks and segmental SAR (after Figs. 2/4 and 5/7 of the TOA paper).
+
+Matplotlib runs on the non-interactive Agg backend; every function writes one PNG and returns its
+path. Times on the x axis are in seconds, TOA in milliseconds, SAR in dB.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Sequence
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+from matplotlib.patches import Patch  # noqa: E402
+import numpy as np  # noqa: E402
+
+__all__ = ["plot_toa_tracks", "plot_segmental_sar"]
+
+_DPI = 120
+
+
+def _save(fig, path) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=_DPI)
+    plt.close(fig)
+    return path
+
+
+def plot_toa_tracks(
+    path: str | Path,
+    *,
+    time_s: np.ndarray,
+    toa_s: np.ndarray,
+    true_time_s: np.ndarray | None = None,
+    true_toa_s: np.ndarray | None = None,
+    gated: np.ndarray | None = None,
+    device_names: Sequence[str] | None = None,
+    title: str | None = None,
+) -> Path:
+    """Relative TOA of each device over time, estimates against ground truth.
+
+    One colour per device ``1..M-1`` (device 0 is the reference, always 0, and is skipped).
+    Estimates are small dots joined by a thin line, the ground truth a solid black line, and gated
+    (rejected as clutter) frames are marked with a grey ``x``.
+
+    Parameters
+    ----------
+    path : str or Path
+        Output PNG file.
+    time_s : ndarray, shape (n_frames,), seconds
+        Frame times of the estimates.
+    toa_s : ndarray, shape (n_frames, n_mics), seconds
+        Relative TOA estimates (``toa_s[:, 0] = 0``).
+    true_time_s : ndarray, shape (n_true,), seconds, optional
+        Times of the ground truth (defaults to ``time_s``).
+    true_toa_s : ndarray, shape (n_true, n_mics) or (n_mics,), seconds, optional
+        Ground-truth relative TOA; a single row is drawn as constant.
+    gated : ndarray, shape (n_frames,) or (n_frames, n_mics), bool, optional
+        Frames (or frame/device entries) whose measurement was gated.
+    device_names : sequence of str, length n_mics, optional
+        Legend labels (default ``"device i"``).
+    title : str, optional
+
+    Returns
+    -------
+    Path
+        The written file.
+    """
+    t = np.asarray(time_s, dtype=float).reshape(-1)
+    toa = np.asarray(toa_s, dtype=float)
+    if toa.ndim == 1:
+        toa = toa[:, None]
+    if toa.shape[0] != t.size:
+        raise ValueError(f"{toa.shape=} must have {t.size} rows (len(time_s))")
+    n_mics = toa.shape[1]
+    names = list(device_names) if device_names is not None else [f"device {i}" for i in range(n_mics)]
+    if len(names) != n_mics:
+        raise ValueError(f"{len(names)=} device_names must match {n_mics=}")
+    true = None
+    if true_toa_s is not None:
+        true = np.asarray(true_toa_s, dtype=float)
+        if true.ndim == 1:
+            tt = np.array([t.min(), t.max()]) if true_time_s is None else np.asarray(true_time_s, float)
+            true = np.broadcast_to(true, (tt.size, n_mics)) if tt.size else true[None, :]
+        else:
+            tt = t if true_time_s is None else np.asarray(true_time_s, dtype=float)
+        if true.shape != (tt.size, n_mics):
+            raise ValueError(f"{true.shape=} must be ({tt.size}, {n_mics}) = (n_true, n_mics)")
+    gate = None
+    if gated is not None:
+        gate = np.asarray(gated, dtype=bool)
+        if gate.ndim == 1:
+            gate = np.broadcast_to(gate[:, None], toa.shape)
+        if gate.shape != toa.shape:
+            raise ValueError(f"{gate.shape=} must be (n_frames,) or {toa.shape}")
+
+    fig, ax = plt.subplots(figsize=(9, 4.8), constrained_layout=True)
+    colours = plt.get_cmap("tab10")
+    for i in range(1, n_mics):
+        c = colours((i - 1) % 10)
+        ax.plot(t, toa[:, i] * 1e3, "-", color=c, lw=0.6, alpha=0.6)
+        ax.plot(t, toa[:, i] * 1e3, ".", color=c, ms=3.5, label=f"{names[i]} estimate")
+        if gate is not None and gate[:, i].any():
+            g = gate[:, i]
+            ax.plot(t[g], toa[g, i] * 1e3, "x", color="0.35", ms=5, mew=1.0)
+    if true is not None:
+        for i in range(1, n_mics):
+            ax.plot(tt, true[:, i] * 1e3, "-", color="k", lw=1.6, label="ground truth" if i == 1 else None)
+    if gate is not None and gate[:, 1:].any():
+        ax.plot([], [], "x", color="0.35", ms=5, label="gated (clutter)")
+    ax.set_xlabel("time (s)")
+    ax.set_ylabel(f"relative TOA to {names[0]} (ms)")
+    ax.set_title(title or "Relative time of arrival per device")
+    ax.grid(True, alpha=0.3)
+    ax.legend(loc="best", fontsize=8, ncol=2 if n_mics > 5 else 1, framealpha=0.85)
+    return _save(fig, path)
+
+
+def plot_segmental_sar(
+    path: str | Path,
+    *,
+    enhanced: np.ndarray,
+    sample_rate_hz: float,
+    segment_start_s: np.ndarray,
+    sar_db: np.ndarray,
+    is_speech: np.ndarray,
+    title: str | None = None,
+) -> Path:
+    """Beamformed waveform above its segmental SAR (as in Figs. 5 and 7 of the TOA paper).
+
+    Parameters
+    ----------
+    path : str or Path
+        Output PNG file.
+    enhanced : ndarray, shape (n_samples,)
+        Beamformed (enhanced) signal.
+    sample_rate_hz : float
+        Sample rate in hertz.
+    segment_start_s : ndarray, shape (n_segments,), seconds
+        Start of each segment (equal lengths, from :func:`stream.metrics.segmental_sar_db`).
+    sar_db : ndarray, shape (n_segments,), dB
+        SAR per segment (``nan`` where undefined).
+    is_speech : ndarray, shape (n_segments,), bool
+        Speech segments are drawn in colour, silence in grey (excluded from SSARA).
+    title : str, optional
+
+    Returns
+    -------
+    Path
+        The written file.
+    """
+    if not sample_rate_hz > 0:
+        raise ValueError(f"{sample_rate_hz=} must be a positive number of hertz")
+    y = np.asarray(enhanced, dtype=float).reshape(-1)
+    starts = np.asarray(segment_start_s, dtype=float).reshape(-1)
+    sar = np.asarray(sar_db, dtype=float).reshape(-1)
+    speech = np.asarray(is_speech, dtype=bool).reshape(-1)
+    if not (starts.size == sar.size == speech.size):
+        raise ValueError(f"{starts.size=}, {sar.size=} and {speech.size=} must match (n_segments)")
+    seg_s = float(np.median(np.diff(starts))) if starts.size > 1 else y.size / sample_rate_hz
+
+    fig, (ax_w, ax_s) = plt.subplots(2, 1, figsize=(9, 5.5), sharex=True, constrained_layout=True,
+                                     gridspec_kw={"height_ratios": [1, 1.2]})
+    t = np.arange(y.size) / sample_rate_hz
+    ax_w.plot(t, y, color="tab:blue", lw=0.4)
+    ax_w.set_ylabel("amplitude")
+    ax_w.set_title(title or "Beamformed signal and segmental SAR")
+    ax_w.grid(True, alpha=0.3)
+
+    finite = np.isfinite(sar)
+    colours = np.where(speech, "tab:green", "0.7")
+    ax_s.bar(starts[finite], sar[finite], width=seg_s * 0.92, align="edge", color=colours[finite],
+             edgecolor="k", linewidth=0.4)
+    ax_s.axhline(0.0, color="k", lw=0.6)
+    use = finite & speech
+    if use.any():
+        ssara = 10.0 * np.log10(np.mean(10.0 ** (sar[use] / 10.0)))  # eq. (21)
+        ax_s.axhline(ssara, color="tab:red", ls="--", lw=1.2, label=f"SSARA = {ssara:.1f} dB")
+    handles, _ = ax_s.get_legend_handles_labels()
+    handles += [
+        Patch(facecolor="tab:green", edgecolor="k", lw=0.4, label=f"speech segment ({seg_s * 1e3:.0f} ms)"),
+        Patch(facecolor="0.7", edgecolor="k", lw=0.4, label="silence (not scored)"),
+    ]
+    ax_s.set_xlabel("time (s)")
+    ax_s.set_ylabel("segmental SAR (dB)")
+    ax_s.grid(True, axis="y", alpha=0.3)
+    ax_s.legend(handles=handles, loc="lower right", fontsize=8, framealpha=0.85)
+    ax_s.set_xlim(0.0, max(t[-1] if t.size else 0.0, starts[-1] + seg_s if starts.size else 0.0))
+    return _save(fig, path)

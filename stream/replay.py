@@ -1,0 +1,198 @@
+"""Replay recorded files as fake live input: one file per device, each in its own clock.
+
+A :class:`ReplaySource` yields :class:`~stream.messages.Frame` blocks device by device in time order,
+exactly as a live source would, optionally paced at real time (``speed=1.0``).
+"""
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterator, Sequence
+
+import numpy as np
+import soundfile as sf
+
+from .errors import InputFileError
+from .messages import Frame, FrameFlag
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class DeviceInfo:
+    """Facts about one device's input, filled in while streaming (reported at the end)."""
+
+    name: str
+    path: str
+    sample_rate_hz: float = float("nan")
+    n_file_channels: int = 0
+    n_file_samples: int = 0
+    duration_s: float = 0.0
+    n_read_samples: int = 0
+    usable: bool = True
+    problems: list[str] = field(default_factory=list)
+
+    def problem(self, message: str) -> None:
+        """Record (and log) a one-sentence problem with this device."""
+        self.problems.append(message)
+        log.warning("%s", message)
+
+
+def open_device_file(path: str | Path, *, name: str | None = None) -> tuple[sf.SoundFile | None, DeviceInfo]:
+    """Open one device's recording, or explain in one sentence why it cannot be used.
+
+    Returns
+    -------
+    (SoundFile or None, DeviceInfo)
+        The open file (None when it cannot be used; ``info.problems`` says why).
+    """
+    path = Path(path)
+    info = DeviceInfo(name=name or path.stem, path=str(path))
+    if not path.exists():
+        info.usable = False
+        info.problem(f"Device '{info.name}': file {path} does not exist; it is left out.")
+        return None, info
+    try:
+        handle = sf.SoundFile(str(path))
+    except (sf.LibsndfileError, RuntimeError, OSError) as err:
+        info.usable = False
+        info.problem(f"Device '{info.name}': {path} is not a readable audio file ({err}); it is left out.")
+        return None, info
+    info.sample_rate_hz = float(handle.samplerate)
+    info.n_file_channels = int(handle.channels)
+    info.n_file_samples = int(handle.frames) if handle.frames >= 0 else 0
+    info.duration_s = info.n_file_samples / info.sample_rate_hz
+    if info.n_file_samples == 0:
+        handle.close()
+        info.usable = False
+        info.problem(f"Device '{info.name}': {path} holds no samples; it is left out.")
+        return None, info
+    if info.n_file_channels > 1:
+        log.info("Device '%s': %d channels mixed down to mono.", info.name, info.n_file_channels)
+    return handle, info
+
+
+class ReplaySource:
+    """Replays one recording per device as a live stream.
+
+    Parameters
+    ----------
+    paths : sequence of path
+        One audio file per device (any format libsndfile reads); the first usable one is the reference.
+    block_s : float
+        Duration of each block in seconds, on each device's own clock.
+    speed : float or None
+        ``None`` replays as fast as possible; ``1.0`` paces blocks at real time, ``2.0`` at twice that.
+    names : sequence of str, optional
+        Device names; default: file stems.
+
+    Usage: ``with ReplaySource(paths) as src: for frame in src: ...``. Devices whose files cannot be
+    opened are left out with a one-sentence message in ``src.devices[k].problems``; ``src.active``
+    lists the devices that stream, in order (their ``device_id`` is their index in ``active``).
+    """
+
+    def __init__(self, paths: Sequence[str | Path], *, block_s: float = 0.02, speed: float | None = None,
+                 names: Sequence[str] | None = None) -> None:
+        if len(paths) == 0:
+            raise InputFileError("No input files were given; pass one audio file per device.")
+        if not block_s > 0:
+            raise ValueError(f"{block_s=} must be > 0 seconds")
+        if speed is not None and not speed > 0:
+            raise ValueError(f"{speed=} must be > 0 (or None for as fast as possible)")
+        if names is not None and len(names) != len(paths):
+            raise ValueError(f"{len(names)=} must equal {len(paths)=}")
+        self.block_s = float(block_s)
+        self.speed = speed
+        self._paths = [Path(p) for p in paths]
+        self._names = list(names) if names is not None else None
+        self.devices: list[DeviceInfo] = []
+        self._handles: list[sf.SoundFile] = []
+        self.active: list[DeviceInfo] = []
+
+    # context manager -------------------------------------------------------------------------
+    def __enter__(self) -> "ReplaySource":
+        self.open()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def open(self) -> None:
+        """Open every file; unusable ones are left out and reported."""
+        seen: dict[str, int] = {}
+        for k, path in enumerate(self._paths):
+            name = self._names[k] if self._names else path.stem
+            if name in seen:  # two files with the same stem in different folders
+                seen[name] += 1
+                name = f"{name}#{seen[name]}"
+            else:
+                seen[name] = 0
+            handle, info = open_device_file(path, name=name)
+            self.devices.append(info)
+            if handle is not None:
+                self._handles.append(handle)
+                self.active.append(info)
+
+    def close(self) -> None:
+        for h in self._handles:
+            h.close()
+        self._handles = []
+
+    @property
+    def sample_rates_hz(self) -> list[float]:
+        return [d.sample_rate_hz for d in self.active]
+
+    @property
+    def duration_s(self) -> float:
+        """Longest file duration in seconds (for progress reporting)."""
+        return max((d.duration_s for d in self.active), default=0.0)
+
+    # iteration -------------------------------------------------------------------------------
+    def __iter__(self) -> Iterator[Frame]:
+        if not self._handles and not self.devices:
+            self.open()
+        n_dev = len(self._handles)
+        ended = [False] * n_dev
+        seq = [0] * n_dev
+        pos = [0] * n_dev
+        tick = 0
+        t0 = time.monotonic()
+        while not all(ended):
+            if self.speed is not None:
+                due = t0 + tick * self.block_s / self.speed
+                delay = due - time.monotonic()
+                if delay > 0:
+                    time.sleep(delay)
+            for d in range(n_dev):
+                if ended[d]:
+                    continue
+                info, handle = self.active[d], self._handles[d]
+                rate = info.sample_rate_hz
+                # cumulative boundaries so that block lengths never drift from the clock
+                stop = int(round((tick + 1) * self.block_s * rate))
+                want = stop - pos[d]
+                flags = FrameFlag.NONE
+                try:
+                    data = handle.read(want, dtype="float32", always_2d=True)
+                except (sf.LibsndfileError, RuntimeError) as err:
+                    data = np.zeros((0, max(1, info.n_file_channels)), np.float32)
+                    flags |= FrameFlag.TRUNCATED
+                    info.problem(f"Device '{info.name}': read error after {pos[d] / rate:.2f} s ({err}); "
+                                 "its stream ends there.")
+                samples = data.mean(axis=1, dtype=np.float32) if data.shape[1] > 1 else data[:, 0]
+                last = len(samples) < want or handle.tell() >= info.n_file_samples
+                if len(samples) < want and pos[d] + len(samples) < info.n_file_samples and not flags:
+                    flags |= FrameFlag.TRUNCATED
+                    info.problem(f"Device '{info.name}': file ends after {(pos[d] + len(samples)) / rate:.2f} s, "
+                                 f"before the {info.duration_s:.2f} s its header states (truncated).")
+                if last:
+                    flags |= FrameFlag.LAST
+                    ended[d] = True
+                info.n_read_samples += len(samples)
+                yield Frame(device_id=d, seq=seq[d], first_sample=pos[d], sample_rate_hz=rate,
+                            samples=np.ascontiguousarray(samples, dtype=np.float32), flags=flags)
+                seq[d] += 1
+                pos[d] += len(samples)
+            tick += 1

@@ -1,0 +1,216 @@
+"""GCC-PHAT against synthetic delays: known shifts in, TDOA in seconds out (tolerances in samples)."""
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+import scipy.fft
+import scipy.signal
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from estimators import GccPhat, gcc_phat, gcc_phat_spectra, pair_matrix, pairs
+
+FS_HZ = 16_000.0
+N = 1024
+
+
+def noise(seed: int, n_samples: int = 4 * N) -> np.ndarray:
+    return np.random.default_rng(seed).standard_normal(n_samples)
+
+
+def speech_like(seed: int, n_samples: int = 4 * N) -> np.ndarray:
+    """AR(2) resonance (formant near 500 Hz) with a syllabic 4 Hz envelope."""
+    rng = np.random.default_rng(seed)
+    r, f_hz = 0.97, 500.0
+    a = [1.0, -2 * r * np.cos(2 * np.pi * f_hz / FS_HZ), r * r]
+    x = scipy.signal.lfilter([1.0], a, rng.standard_normal(n_samples))
+    t_s = np.arange(n_samples) / FS_HZ
+    return x * (1.2 + np.sin(2 * np.pi * 4.0 * t_s))
+
+
+def delayed(x: np.ndarray, delay_samples: float) -> np.ndarray:
+    """``x(t - delay)`` by an FFT phase shift (circular over the whole signal)."""
+    k = np.arange(len(x) // 2 + 1)
+    return np.fft.irfft(np.fft.rfft(x) * np.exp(-2j * np.pi * k * delay_samples / len(x)), n=len(x))
+
+
+def frame_of(*channels: np.ndarray) -> np.ndarray:
+    """Middle ``N`` samples of each channel, time-major; the delay is not circular in the frame."""
+    return np.stack([c[N : 2 * N] for c in channels], axis=1)
+
+
+@pytest.mark.parametrize("d", [-37, -5, -1, 0, 1, 7, 100])
+@pytest.mark.parametrize("source", [noise, speech_like])
+def test_integer_delay_sign_and_value(d, source):
+    s = source(d + 1000)
+    x1 = np.roll(s, d)  # channel 1 delayed by d samples: x1(t) = s(t - d)
+    tdoa_s, conf = gcc_phat(frame_of(s, x1), sample_rate_hz=FS_HZ)
+    # pair (0, 1): toa_0 - toa_1 = -d
+    assert tdoa_s.shape == (1,) and tdoa_s.dtype == np.float64
+    assert abs(tdoa_s[0] * FS_HZ - (-d)) <= 0.1
+    assert 0.5 < conf[0] <= 1.0
+
+
+@pytest.mark.parametrize("d", [-12.5, -3.25, -0.4, 0.3, 2.75, 9.9])
+@pytest.mark.parametrize("interpolation", ["sinc", "parabolic"])
+@pytest.mark.parametrize("source", [noise, speech_like])
+def test_fractional_delay(d, interpolation, source):
+    s = source(7)
+    tdoa_s, _ = gcc_phat(frame_of(s, delayed(s, d)), sample_rate_hz=FS_HZ, interpolation=interpolation)
+    assert abs(tdoa_s[0] * FS_HZ + d) <= 0.25
+
+
+def test_sinc_interpolation_is_nearly_unbiased():
+    s = noise(3)
+    for d in np.linspace(-2, 2, 17):
+        tdoa_s, _ = gcc_phat(frame_of(s, delayed(s, d)), sample_rate_hz=FS_HZ)
+        assert abs(tdoa_s[0] * FS_HZ + d) <= 0.02
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), d=st.floats(-50, 50, allow_nan=False))
+def test_follows_a_shift(seed, d):
+    s = noise(seed)
+    tdoa_s, _ = gcc_phat(frame_of(s, delayed(s, d)), sample_rate_hz=FS_HZ)
+    assert abs(tdoa_s[0] * FS_HZ + d) <= 0.25
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    seed=st.integers(0, 2**31 - 1),
+    d=st.floats(-50, 50, allow_nan=False),
+    noise_std=st.floats(0.0, 1.0),
+)
+def test_antisymmetric(seed, d, noise_std):
+    rng = np.random.default_rng(seed)
+    s = noise(seed)
+    x = s + noise_std * rng.standard_normal(len(s))
+    y = delayed(s, d) + noise_std * rng.standard_normal(len(s))
+    t_xy, c_xy = gcc_phat(frame_of(x, y), sample_rate_hz=FS_HZ)
+    t_yx, c_yx = gcc_phat(frame_of(y, x), sample_rate_hz=FS_HZ)
+    assert abs(t_xy[0] + t_yx[0]) * FS_HZ <= 1e-3
+    assert abs(c_xy[0] - c_yx[0]) <= 1e-4
+
+
+def test_multichannel_matches_pair_matrix():
+    toa_samples = np.array([0.0, 3.5, -7.25, 12.0, 0.6])
+    s = speech_like(11)
+    frame = frame_of(*[delayed(s, t) for t in toa_samples])
+    tdoa_s, conf = gcc_phat(frame, sample_rate_hz=FS_HZ)
+    expected_samples = pair_matrix(5) @ toa_samples
+    assert tdoa_s.shape == (10,)
+    np.testing.assert_allclose(tdoa_s * FS_HZ, expected_samples, atol=0.25)
+    # pair order is pairs(): (0,1) first, (3,4) last
+    assert pairs(5)[0].tolist() == [0, 1] and pairs(5)[-1].tolist() == [3, 4]
+    assert np.all((conf > 0.3) & (conf <= 1.0))
+
+
+def test_max_tdoa_bound_respected():
+    s = noise(5)
+    frame = frame_of(s, np.roll(s, 40), np.roll(s, -25))
+    max_tdoa_s = 10 / FS_HZ
+    tdoa_s, _ = gcc_phat(frame, sample_rate_hz=FS_HZ, max_tdoa_s=max_tdoa_s)
+    assert np.all(np.abs(tdoa_s) <= max_tdoa_s + 1e-12)
+    # a delay inside the bound is still found
+    tdoa_s, _ = gcc_phat(frame_of(s, np.roll(s, 6)), sample_rate_hz=FS_HZ, max_tdoa_s=max_tdoa_s)
+    assert abs(tdoa_s[0] * FS_HZ + 6) <= 0.1
+
+
+def test_search_stays_below_half_frame():
+    gcc = GccPhat(2, n_fft=64, sample_rate_hz=FS_HZ, max_tdoa_s=1.0)
+    assert gcc.max_lag_samples == 31
+
+
+@pytest.mark.parametrize("bad", ["zeros", "nan", "inf"])
+def test_silent_or_invalid_channel(bad):
+    s = noise(9)
+    frame = frame_of(s, np.roll(s, 3), np.zeros_like(s), np.roll(s, -2))
+    if bad == "nan":
+        frame[100, 2] = np.nan
+    elif bad == "inf":
+        frame[:, 2] = np.inf
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        tdoa_s, conf = gcc_phat(frame, sample_rate_hz=FS_HZ)
+    assert np.all(np.isfinite(tdoa_s)) and np.all(np.isfinite(conf))
+    touches_2 = (pairs(4) == 2).any(axis=1)
+    assert np.all(conf[touches_2] == 0) and np.all(tdoa_s[touches_2] == 0)
+    assert np.all(conf[~touches_2] > 0.5)
+    np.testing.assert_allclose(tdoa_s[~touches_2] * FS_HZ, [-3, 2, 5], atol=0.1)
+
+
+@pytest.mark.parametrize("bad_value", [np.nan, np.inf, 0.0])
+def test_invalid_spectra_handled(bad_value):
+    s = noise(2)
+    spec = scipy.fft.rfft(frame_of(s, np.roll(s, 4), s), axis=0)
+    if bad_value == 0.0:
+        spec[:, 2] = 0.0
+    else:
+        spec[5, 2] = bad_value
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        tdoa_s, conf = gcc_phat_spectra(spec, n_fft=N, sample_rate_hz=FS_HZ)
+    np.testing.assert_array_equal(conf[1:], 0.0)
+    np.testing.assert_array_equal(tdoa_s[1:], 0.0)
+    assert abs(tdoa_s[0] * FS_HZ + 4) <= 0.1
+
+
+def test_pure_circular_delay_has_confidence_one():
+    s = noise(4, N)
+    tdoa_s, conf = gcc_phat(np.stack([s, np.roll(s, 9)], axis=1), sample_rate_hz=FS_HZ, window=False)
+    assert abs(tdoa_s[0] * FS_HZ + 9) <= 1e-3
+    assert conf[0] == pytest.approx(1.0, abs=1e-3)
+
+
+@pytest.mark.parametrize("max_tdoa_s", [None, 20 / FS_HZ])
+def test_frame_and_spectra_paths_agree(max_tdoa_s):
+    s = speech_like(8)
+    frame = frame_of(s, delayed(s, 2.5), delayed(s, -6.0), np.roll(s, 1))
+    window = scipy.signal.get_window("hann", N, fftbins=True)
+    spectra = scipy.fft.rfft((frame * window[:, None]).astype(np.float32), axis=0)
+    t_frame, c_frame = gcc_phat(frame, sample_rate_hz=FS_HZ, max_tdoa_s=max_tdoa_s)
+    t_spec, c_spec = gcc_phat_spectra(spectra, n_fft=N, sample_rate_hz=FS_HZ, max_tdoa_s=max_tdoa_s)
+    gcc = GccPhat(4, n_fft=N, sample_rate_hz=FS_HZ, max_tdoa_s=max_tdoa_s)
+    t_cls, c_cls = gcc.process(spectra)
+    np.testing.assert_allclose(t_spec * FS_HZ, t_frame * FS_HZ, atol=1e-3)
+    np.testing.assert_allclose(c_spec, c_frame, atol=1e-4)
+    np.testing.assert_array_equal(t_cls, t_spec)
+    np.testing.assert_array_equal(c_cls, c_spec)
+
+
+def test_outputs_are_not_reused_buffers():
+    gcc = GccPhat(3, n_fft=N, sample_rate_hz=FS_HZ)
+    a, b = noise(1), noise(2)
+    spec_a = scipy.fft.rfft(frame_of(a, np.roll(a, 3), np.roll(a, -8)), axis=0)
+    spec_b = scipy.fft.rfft(frame_of(b, np.roll(b, 1), np.roll(b, 5)), axis=0)
+    t_a, c_a = gcc.process(spec_a)
+    t_a_copy, c_a_copy = t_a.copy(), c_a.copy()
+    gcc.process(spec_b)
+    np.testing.assert_array_equal(t_a, t_a_copy)
+    np.testing.assert_array_equal(c_a, c_a_copy)
+
+
+@pytest.mark.parametrize(
+    "kwargs",
+    [
+        dict(n_channels=1, n_fft=N, sample_rate_hz=FS_HZ),
+        dict(n_channels=2, n_fft=2, sample_rate_hz=FS_HZ),
+        dict(n_channels=2, n_fft=N, sample_rate_hz=0.0),
+        dict(n_channels=2, n_fft=N, sample_rate_hz=FS_HZ, max_tdoa_s=-1e-3),
+        dict(n_channels=2, n_fft=N, sample_rate_hz=FS_HZ, interpolation="cubic"),
+    ],
+)
+def test_bad_arguments_raise_at_construction(kwargs):
+    n_channels = kwargs.pop("n_channels")
+    with pytest.raises(ValueError):
+        GccPhat(n_channels, **kwargs)
+
+
+def test_bad_shapes_raise():
+    gcc = GccPhat(3, n_fft=N, sample_rate_hz=FS_HZ)
+    with pytest.raises(ValueError, match="spectra.shape"):
+        gcc.process(np.zeros((N // 2 + 1, 2), np.complex64))
+    with pytest.raises(ValueError, match="frame.shape"):
+        gcc_phat(np.zeros(N), sample_rate_hz=FS_HZ)

@@ -1,0 +1,377 @@
+"""Relative-TOA estimators against known TOA vectors (tolerances in seconds unless stated)."""
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+import pytest
+from filterpy.kalman import KalmanFilter
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from estimators import FixedLagKalmanToa, KalmanToa, PinvToa, SubsetToa, pair_matrix
+
+FRAME_S = 0.02
+TDOA_STD_S = 2e-5
+
+
+def random_toa(rng: np.random.Generator, n_mics: int, scale_s: float = 1e-3) -> np.ndarray:
+    toa = rng.normal(0.0, scale_s, n_mics)
+    return toa - toa[0]
+
+
+def drifting_track(n_mics: int, n_frames: int, seed: int = 0):
+    """Relative TOA moving linearly: toa(t) = toa0 + rate * t; returns (truth, noisy tdoa)."""
+    rng = np.random.default_rng(seed)
+    toa0 = random_toa(rng, n_mics)
+    rate = np.r_[0.0, rng.uniform(-5e-3, 5e-3, n_mics - 1)]  # s/s
+    t_s = np.arange(n_frames) * FRAME_S
+    truth = toa0[None, :] + t_s[:, None] * rate[None, :]
+    H = pair_matrix(n_mics)
+    tdoa = truth @ H.T + rng.normal(0.0, TDOA_STD_S, (n_frames, len(H)))
+    return truth, tdoa, rate
+
+
+def kalman(n_mics: int, **kwargs) -> KalmanToa:
+    kwargs.setdefault("frame_period_s", FRAME_S)
+    kwargs.setdefault("tdoa_std_s", TDOA_STD_S)
+    kwargs.setdefault("accel_std_s_per_s2", 1e-3)
+    return KalmanToa(n_mics, **kwargs)
+
+
+# -- instantaneous estimators ----------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("n_mics", [2, 3, 5, 10])
+@pytest.mark.parametrize("cls", [SubsetToa, PinvToa])
+def test_noise_free_recovery(cls, n_mics):
+    toa = random_toa(np.random.default_rng(n_mics), n_mics)
+    est = cls(n_mics)
+    out = est.update(pair_matrix(n_mics) @ toa)
+    assert out.shape == (n_mics,) and out[0] == 0.0
+    np.testing.assert_allclose(out, toa, atol=1e-15)
+    assert est.gated is False
+
+
+def test_subset_sign():
+    # pair (0, 1): tdoa = toa_0 - toa_1; mic 1 hears 1 ms later than mic 0 -> tdoa = -1 ms
+    out = SubsetToa(3).update(np.array([-1e-3, 2e-3, 0.0]))
+    np.testing.assert_allclose(out, [0.0, 1e-3, -2e-3])
+
+
+def test_pinv_beats_subset_on_noise():
+    n_mics, n_frames = 6, 2000
+    rng = np.random.default_rng(1)
+    H = pair_matrix(n_mics)
+    toa = random_toa(rng, n_mics)
+    tdoa = toa @ H.T + rng.normal(0.0, TDOA_STD_S, (n_frames, len(H)))
+    sub, pinv = SubsetToa(n_mics), PinvToa(n_mics)
+    err_sub = np.array([sub.update(y) - toa for y in tdoa])[:, 1:]
+    err_pinv = np.array([pinv.update(y) - toa for y in tdoa])[:, 1:]
+    rmse_sub = np.sqrt(np.mean(err_sub**2))
+    rmse_pinv = np.sqrt(np.mean(err_pinv**2))
+    assert rmse_sub == pytest.approx(TDOA_STD_S, rel=0.05)
+    # complete graph: per-element variance of eq. (12) is 2 / M of the pair variance
+    assert rmse_pinv == pytest.approx(TDOA_STD_S * np.sqrt(2 / n_mics), rel=0.05)
+
+
+def test_pinv_excludes_low_confidence_and_nonfinite_pairs():
+    n_mics = 4
+    toa = random_toa(np.random.default_rng(2), n_mics)
+    y = pair_matrix(n_mics) @ toa
+    conf = np.ones(len(y))
+    y_bad = y.copy()
+    y_bad[1] += 0.5  # outlier with zero confidence
+    y_bad[4] = np.nan
+    conf[1] = 0.0
+    for weighted in (False, True):
+        out = PinvToa(n_mics, weighted=weighted).update(y_bad, conf)
+        np.testing.assert_allclose(out, toa, atol=1e-12)
+
+
+def test_pinv_weighted_equal_confidence_is_unweighted():
+    rng = np.random.default_rng(3)
+    y = rng.normal(0.0, 1e-3, 10)
+    a = PinvToa(5).update(y)
+    b = PinvToa(5, weighted=True).update(y, np.full(10, 0.4))
+    np.testing.assert_allclose(a, b, atol=1e-15)
+
+
+def test_subset_holds_excluded_mic():
+    est = SubsetToa(3)
+    est.update(np.array([-1e-3, -2e-3, 1e-3]))
+    out = est.update(np.array([np.nan, -3e-3, 0.0]))
+    np.testing.assert_allclose(out, [0.0, 1e-3, 3e-3])
+
+
+def test_shape_errors():
+    with pytest.raises(ValueError, match="tdoa_s.shape"):
+        PinvToa(4).update(np.zeros(5))
+    with pytest.raises(ValueError, match="confidence.shape"):
+        kalman(3).update(np.zeros(3), np.ones(2))
+
+
+@pytest.mark.parametrize(
+    "factory",
+    [
+        lambda: SubsetToa(1),
+        lambda: PinvToa(2.5),
+        lambda: PinvToa(3, min_confidence=1.0),
+        lambda: KalmanToa(3, frame_period_s=0.0),
+        lambda: KalmanToa(3, frame_period_s=0.02, tdoa_std_s=-1.0),
+        lambda: KalmanToa(3, frame_period_s=0.02, gate_probability=1.0),
+        lambda: KalmanToa(3, frame_period_s=0.02, reinit_after_n_gated=0),
+        lambda: FixedLagKalmanToa(3, lag_frames=-1, frame_period_s=0.02),
+    ],
+)
+def test_bad_arguments_raise_at_construction(factory):
+    with pytest.raises(ValueError):
+        factory()
+
+
+# -- Kalman filter ---------------------------------------------------------------------------------
+
+
+def test_process_noise_is_wiener_velocity():
+    m, dt, q_std = 4, 0.02, 0.3
+    est = KalmanToa(m + 1, frame_period_s=dt, accel_std_s_per_s2=q_std)
+    block = q_std**2 * np.array([[dt**3 / 3, dt**2 / 2], [dt**2 / 2, dt]])
+    np.testing.assert_allclose(est._kf.Q, np.kron(block, np.eye(m)))  # eq. (16) state order
+    np.testing.assert_allclose(est._kf.F, np.kron([[1, dt], [0, 1]], np.eye(m)))
+
+
+def test_first_update_is_pinv_with_zero_rate():
+    n_mics = 4
+    rng = np.random.default_rng(4)
+    y = rng.normal(0.0, 1e-3, 6)
+    est = kalman(n_mics)
+    out = est.update(y)
+    np.testing.assert_allclose(out, PinvToa(n_mics).update(y), atol=1e-15)
+    np.testing.assert_array_equal(est.state[n_mics - 1 :], 0.0)
+    assert est.initialised and est.reinitialised
+
+
+@pytest.mark.parametrize("n_mics", [3, 8])
+def test_tracks_linear_drift(n_mics):
+    truth, tdoa, rate = drifting_track(n_mics, 300)
+    est = kalman(n_mics, accel_std_s_per_s2=1e-5)
+    out = np.array([est.update(y) for y in tdoa])
+    err = out[150:, 1:] - truth[150:, 1:]
+    pinv_std = TDOA_STD_S * np.sqrt(2 / n_mics)  # per-element error of the instantaneous eq. (12)
+    assert np.sqrt(np.mean(err**2)) < 0.25 * pinv_std
+    np.testing.assert_allclose(est.state[n_mics - 1 :], rate[1:], atol=2e-4)
+    assert est.n_gated <= 2  # 0.999 gate on clean Gaussian data
+
+
+@pytest.mark.parametrize("with_mask", [False, True])
+def test_information_form_update_equals_filterpy(with_mask):
+    n_mics = 5
+    truth, tdoa, _ = drifting_track(n_mics, 12, seed=5)
+    est = kalman(n_mics, gate_probability=None)
+    for y in tdoa[:10]:
+        est.update(y)
+    conf = None
+    used = np.ones(len(tdoa[10]), bool)
+    if with_mask:
+        conf = np.full(len(used), 0.9)
+        conf[[2, 7]] = 0.0
+        used = conf > 0
+    ref = copy.deepcopy(est._kf)
+    est.update(tdoa[10], conf)
+    kf = KalmanFilter(dim_x=ref.dim_x, dim_z=int(used.sum()))
+    kf.x, kf.P, kf.F, kf.Q = ref.x.copy(), ref.P.copy(), ref.F, ref.Q
+    kf.H, kf.R = ref.H[used], TDOA_STD_S**2 * np.eye(int(used.sum()))
+    kf.predict()
+    kf.update(tdoa[10][used])
+    np.testing.assert_allclose(est.state, kf.x, rtol=1e-9, atol=1e-15)
+    np.testing.assert_allclose(est.state_covariance, kf.P, rtol=1e-7, atol=1e-20)
+    assert est.last_mahalanobis_sq == pytest.approx(kf.mahalanobis**2, rel=1e-8)
+    assert est.n_pairs_used == used.sum()
+
+
+def test_gated_outlier_leaves_prediction():
+    n_mics = 4
+    _, tdoa, _ = drifting_track(n_mics, 60)
+    est = kalman(n_mics)
+    for y in tdoa[:50]:
+        est.update(y)
+    predicted = copy.deepcopy(est)
+    predicted._kf.predict()
+    outlier = tdoa[50].copy()
+    outlier[0] += 1e-2  # 500 sigma
+    out = est.update(outlier)
+    assert est.gated and est.n_gated == 1
+    np.testing.assert_array_equal(est.state, predicted._kf.x)
+    np.testing.assert_array_equal(est.state_covariance, predicted._kf.P)
+    np.testing.assert_array_equal(out[1:], predicted._kf.x[: n_mics - 1])
+    est.update(tdoa[51])
+    assert not est.gated
+
+
+@settings(max_examples=20, deadline=None)
+@given(
+    seed=st.integers(0, 2**31 - 1),
+    pair=st.integers(0, 5),
+    jump_s=st.floats(2e-3, 1e-1),
+    sign=st.sampled_from([-1.0, 1.0]),
+)
+def test_gate_leaves_prior_untouched(seed, pair, jump_s, sign):
+    _, tdoa, _ = drifting_track(4, 31, seed=seed % 1000)
+    est = kalman(4)
+    for y in tdoa[:30]:
+        est.update(y)
+    prior = copy.deepcopy(est._kf)
+    prior.predict()
+    y = tdoa[30].copy()
+    y[pair] += sign * jump_s
+    est.update(y)
+    assert est.gated
+    np.testing.assert_array_equal(est.state, prior.x)
+    np.testing.assert_array_equal(est.state_covariance, prior.P)
+
+
+def test_no_usable_pair_only_predicts():
+    n_mics = 3
+    _, tdoa, _ = drifting_track(n_mics, 20)
+    est = kalman(n_mics)
+    for y in tdoa[:19]:
+        est.update(y)
+    predicted = copy.deepcopy(est._kf)
+    predicted.predict()
+    est.update(tdoa[19], np.zeros(3))
+    assert not est.gated and est.n_pairs_used == 0
+    np.testing.assert_array_equal(est.state, predicted.x)
+
+
+def test_reset_restores_initial_state():
+    n_mics = 4
+    _, tdoa, _ = drifting_track(n_mics, 40)
+    first = kalman(n_mics)
+    fresh = [first.update(y) for y in tdoa[:20]]
+    est = kalman(n_mics)
+    for y in tdoa:
+        est.update(y)
+    est.update(tdoa[0] + 1.0)  # gated
+    est.reset()
+    assert not est.initialised and est.n_gated == 0 and est.n_reinit == 0 and not est.gated
+    np.testing.assert_array_equal([est.update(y) for y in tdoa[:20]], fresh)
+
+
+def test_reinitialises_after_many_gated_frames():
+    n_mics = 4
+    H = pair_matrix(n_mics)
+    rng = np.random.default_rng(6)
+    toa_a, toa_b = random_toa(rng, n_mics), random_toa(rng, n_mics, 5e-3)
+    est = kalman(n_mics, reinit_after_n_gated=10)
+    for _ in range(30):
+        est.update(H @ toa_a + rng.normal(0, TDOA_STD_S, len(H)))
+    gated = []
+    for _ in range(15):
+        out = est.update(H @ toa_b + rng.normal(0, TDOA_STD_S, len(H)))
+        gated.append(est.gated)
+    assert gated[:10] == [True] * 10 and not any(gated[10:])
+    assert est.n_reinit == 1
+    np.testing.assert_allclose(out, toa_b, atol=4 * TDOA_STD_S)
+
+
+def test_confidence_weighting_downweights_pairs():
+    n_mics = 3
+    rng = np.random.default_rng(7)
+    toa = random_toa(rng, n_mics)
+    H = pair_matrix(n_mics)
+    est_w = kalman(n_mics, confidence_weighted=True, gate_probability=None)
+    est_u = kalman(n_mics, gate_probability=None)
+    conf = np.array([1.0, 1.0, 0.01])
+    for _ in range(30):
+        y = H @ toa + rng.normal(0, TDOA_STD_S, 3)
+        y[2] += 5 * TDOA_STD_S  # biased pair, low confidence
+        out_w, out_u = est_w.update(y, conf), est_u.update(y, conf)
+    assert np.abs(out_w - toa).max() < np.abs(out_u - toa).max()
+
+
+# -- fixed-lag smoother ----------------------------------------------------------------------------
+
+
+def moving_track(n_mics: int, n_frames: int, seed: int):
+    rng = np.random.default_rng(seed)
+    t_s = np.arange(n_frames) * FRAME_S
+    amp = rng.uniform(1e-3, 3e-3, n_mics)
+    phase = rng.uniform(0, 2 * np.pi, n_mics)
+    truth = amp * np.sin(2 * np.pi * 0.5 * t_s[:, None] + phase)
+    truth -= truth[:, :1]
+    H = pair_matrix(n_mics)
+    return truth, truth @ H.T + rng.normal(0.0, 5 * TDOA_STD_S, (n_frames, len(H)))
+
+
+def test_smoother_beats_filter_on_moving_track():
+    n_mics, n_frames, lag = 4, 300, 8
+    kw = dict(frame_period_s=FRAME_S, tdoa_std_s=5 * TDOA_STD_S, accel_std_s_per_s2=0.05)
+    truth, tdoa = moving_track(n_mics, n_frames, seed=8)
+    filt = KalmanToa(n_mics, **kw)
+    smooth = FixedLagKalmanToa(n_mics, lag_frames=lag, **kw)
+    f_out = np.array([filt.update(y) for y in tdoa])
+    s_out = np.array([smooth.update(y) for y in tdoa])
+    f_err = f_out[50:] - truth[50:]
+    s_err = s_out[50:] - truth[50 - lag : n_frames - lag]  # output t is frame t - lag
+    rmse_f, rmse_s = np.sqrt(np.mean(f_err**2)), np.sqrt(np.mean(s_err**2))
+    assert rmse_s < 0.85 * rmse_f
+    assert smooth.latency_s == pytest.approx(lag * FRAME_S)
+    np.testing.assert_array_equal(smooth.filtered_toa_s, f_out[-1])
+
+
+def test_smoother_first_frames_and_zero_lag():
+    truth, tdoa = moving_track(3, 20, seed=9)
+    kw = dict(frame_period_s=FRAME_S, tdoa_std_s=5 * TDOA_STD_S, accel_std_s_per_s2=0.05)
+    filt = KalmanToa(3, **kw)
+    s0 = FixedLagKalmanToa(3, lag_frames=0, **kw)
+    s5 = FixedLagKalmanToa(3, lag_frames=5, **kw)
+    for t, y in enumerate(tdoa):
+        f = filt.update(y)
+        np.testing.assert_array_equal(s0.update(y), f)
+        out5 = s5.update(y)
+        if t < 5:
+            np.testing.assert_array_equal(out5, f)
+    s5.reset()
+    assert s5.initialised is False
+    np.testing.assert_array_equal(s5.update(tdoa[0]), KalmanToa(3, **kw).update(tdoa[0]))
+
+
+def test_smoother_equals_batch_rts():
+    """Fixed lag L at the last frame equals the full RTS smoother over the last L+1 frames."""
+    n_mics, lag = 3, 6
+    truth, tdoa = moving_track(n_mics, 30, seed=10)
+    kw = dict(frame_period_s=FRAME_S, tdoa_std_s=5 * TDOA_STD_S, accel_std_s_per_s2=0.05, gate_probability=None)
+    smooth = FixedLagKalmanToa(n_mics, lag_frames=lag, **kw)
+    filt = KalmanToa(n_mics, **kw)
+    xs, Ps = [], []
+    for y in tdoa:
+        out = smooth.update(y)
+        filt.update(y)
+        xs.append(filt.state)
+        Ps.append(filt.state_covariance)
+    Ms, Ns = np.array(xs), np.array(Ps)
+    F, Q = filt._kf.F, filt._kf.Q
+    x_s = Ms[-1]
+    for k in range(len(Ms) - 2, len(Ms) - 2 - lag, -1):
+        P_pred = F @ Ns[k] @ F.T + Q
+        C = Ns[k] @ F.T @ np.linalg.inv(P_pred)
+        x_s = Ms[k] + C @ (x_s - F @ Ms[k])
+    np.testing.assert_allclose(out[1:], x_s[: n_mics - 1], rtol=1e-9, atol=1e-15)
+
+
+def test_shift_moves_the_track_without_gating():
+    """A known jump of the fine TOA (the stream re-aligned a device) is absorbed by shift()."""
+    from estimators import FixedLagKalmanToa, KalmanToa, pair_matrix
+
+    H = pair_matrix(3)
+    for cls, kw in ((KalmanToa, {}), (FixedLagKalmanToa, {"lag_frames": 3})):
+        est = cls(3, frame_period_s=0.02, tdoa_std_s=1e-5, **kw)
+        toa = np.array([0.0, 0.001, -0.002])
+        for _ in range(20):
+            est.update(H @ toa)
+        jump = np.array([0.0, -0.004, 0.0])
+        est.shift(jump)
+        out = est.update(H @ (toa + jump))
+        assert not est.gated
+        if cls is KalmanToa:
+            np.testing.assert_allclose(out, toa + jump, atol=2e-5)

@@ -1,0 +1,79 @@
+"""Coarse alignment: known start offsets of seconds are found to within a sample."""
+import numpy as np
+import pytest
+from hypothesis import given, settings, strategies as st
+
+from stream.align import Aligner, coarse_offset
+from stream.messages import FrameFlag
+from tests.conftest import bursty_source, delayed
+
+FS = 8000
+
+
+@pytest.mark.parametrize("offset_s", [-1.7, -0.25, 0.0, 0.4, 2.0])
+def test_coarse_offset_finds_start_offsets(offset_s):
+    src = bursty_source(12 * FS, sample_rate_hz=FS, seed=3)
+    ref = src[2 * FS:10 * FS]
+    start = int(2 * FS + offset_s * FS)
+    x = src[start:start + 8 * FS] + 0.01 * np.random.default_rng(0).standard_normal(8 * FS).astype(np.float32)
+    off, quality = coarse_offset(ref, x, sample_rate_hz=FS, max_offset_s=3.0)
+    # x[n + off] == ref[n]  <=>  off = -(start - 2 FS)
+    assert off == -(start - 2 * FS)
+    assert quality > 0.5
+
+
+def test_unrelated_signal_has_low_quality():
+    a = bursty_source(6 * FS, sample_rate_hz=FS, seed=1)
+    b = np.random.default_rng(5).standard_normal(6 * FS).astype(np.float32) * 0.1
+    _, quality = coarse_offset(a, b, sample_rate_hz=FS, max_offset_s=2.0)
+    assert quality < 0.15
+
+
+def _run_aligner(devs, splits, hop=64):
+    al = Aligner(len(devs), sample_rate_hz=FS, hop_samples=hop, align_window_s=3.0, max_offset_s=1.0, recheck_s=None)
+    blocks = []
+    pos = [0] * len(devs)
+    for step in splits:
+        for d, x in enumerate(devs):
+            chunk = x[pos[d]:pos[d] + step]
+            pos[d] += len(chunk)
+            last = pos[d] >= len(x)
+            blocks += al.push(d, chunk, FrameFlag.LAST if last else FrameFlag.NONE)
+    blocks += al.finish()
+    return al, blocks
+
+
+@settings(max_examples=8, deadline=None)
+@given(st.lists(st.integers(1, 3000), min_size=1, max_size=6))
+def test_aligned_blocks_do_not_depend_on_the_input_split(chunk_sizes):
+    src = bursty_source(6 * FS, sample_rate_hz=FS, seed=2)
+    devs = [src[:5 * FS], delayed(src, -1234.0, 5 * FS)]   # device 1 starts 1234 samples later
+    reps = (sum(chunk_sizes) and (5 * FS) // sum(chunk_sizes) + 1)
+    al_a, a = _run_aligner(devs, chunk_sizes * reps)
+    al_b, b = _run_aligner(devs, [5 * FS])
+    assert al_a.offsets_samples.tolist() == al_b.offsets_samples.tolist()
+    assert len(a) == len(b)
+    np.testing.assert_array_equal(np.vstack([x.samples for x in a]), np.vstack([x.samples for x in b]))
+
+
+def test_aligner_applies_offset_and_flags_missing_audio():
+    src = bursty_source(6 * FS, sample_rate_hz=FS, seed=4)
+    dev0 = src[FS:5 * FS]
+    dev1 = src[FS + 800:5 * FS]     # device 1 started 800 samples later: dev1[n - 800] == dev0[n]
+    al, blocks = _run_aligner([dev0, dev1], [4000] * 9)
+    assert al.offsets_samples[1] == -800
+    x = np.vstack([b.samples for b in blocks])
+    np.testing.assert_allclose(x[800:len(dev0), 1], dev0[800:], atol=1e-6)
+    # the first 800 reference samples have no device-1 audio: those blocks are invalid for device 1
+    assert not blocks[0].valid[1] and blocks[0].valid[0]
+    assert blocks[-1].valid[0]
+
+
+def test_device_that_never_overlaps_is_left_out():
+    src = bursty_source(10 * FS, sample_rate_hz=FS, seed=6)
+    dev0 = src[:3 * FS]
+    dev1 = np.random.default_rng(1).standard_normal(3 * FS).astype(np.float32) * 0.05
+    al, blocks = _run_aligner([dev0, dev1], [1000] * 25)
+    assert not al.aligned[1]
+    assert any("left out" in m for m in al.messages)
+    assert not any(b.valid[1] for b in blocks)

@@ -1,0 +1,173 @@
+"""Replay end to end on synthetic devices with known delays, and every kind of bad input."""
+import json
+
+import numpy as np
+import pytest
+import soundfile as sf
+
+from stream.cli import main
+from stream.config import EngineConfig
+from stream.errors import ConfigError, InputFileError, StreamError
+from stream.replay import ReplaySource
+from stream.run import run_replay
+
+FAST = dict(plots=False, progress=False, align_window_s=4.0, max_offset_s=2.5)
+
+
+def _cfg(**kw):
+    return EngineConfig(**{**FAST, **kw})
+
+
+def _toa_after(outcome, t_min_s=2.0):
+    time_s, toa_s, _ = outcome.pipeline.toa_track()
+    return toa_s[time_s > t_min_s]
+
+
+def test_known_delays_and_offsets_are_recovered(make_devices, tmp_path):
+    # device 1 hears 2.5 ms later, device 2 starts 1.3 s earlier (so hears it 1.3 s "later" on its clock)
+    toa = [0.0, 0.0025, 1.3 - 0.001, -0.7]
+    paths, _, _ = make_devices(toa, duration_s=6.0)
+    outcome = run_replay(paths, tmp_path / "out", config=_cfg())
+    est = _toa_after(outcome)
+    np.testing.assert_allclose(np.median(est, axis=0), toa, atol=1.5 / 16000)
+    for name in ("enhanced.wav", "toa.csv", "report.json"):
+        assert (tmp_path / "out" / name).exists()
+    report = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert report["status"] == "ok" and report["stream"]["n_devices"] == 4
+    y, fs = sf.read(tmp_path / "out" / "enhanced.wav")
+    assert fs == 16000 and abs(len(y) - 6 * 16000) <= 2 * outcome.pipeline.config.hop_samples
+
+
+def test_device_at_44k1_among_48k(make_devices, tmp_path):
+    toa = [0.0, 0.001, -0.002]
+    paths, _, _ = make_devices(toa, duration_s=5.0, rate_hz=48000, rates_hz=[48000, 44100, 48000])
+    outcome = run_replay(paths, tmp_path / "o", config=_cfg())
+    est = _toa_after(outcome)
+    np.testing.assert_allclose(np.median(est, axis=0), toa, atol=3 / 48000)
+
+
+@pytest.mark.parametrize("estimator", ["subset", "pinv", "kalman", "smoother"])
+def test_every_estimator_runs(make_devices, tmp_path, estimator):
+    paths, _, _ = make_devices([0.0, 0.002, -0.001], duration_s=4.0)
+    outcome = run_replay(paths, tmp_path / estimator, config=_cfg(estimator=estimator))
+    assert np.isfinite(outcome.pipeline.toa_track()[1]).all()
+
+
+def test_streaming_equals_batch_for_any_block_split(make_devices, tmp_path):
+    paths, _, _ = make_devices([0.0, 0.0031, -0.4], duration_s=5.0, rates_hz=[16000, 16000, 22050])
+    a = run_replay(paths, tmp_path / "a", config=_cfg(block_s=0.013))
+    b = run_replay(paths, tmp_path / "b", config=_cfg(block_s=0.5))
+    ya, yb = a.pipeline.enhanced_signal(), b.pipeline.enhanced_signal()
+    assert len(ya) == len(yb)
+    np.testing.assert_allclose(ya, yb, atol=1e-5)
+    np.testing.assert_allclose(a.pipeline.toa_track()[1], b.pipeline.toa_track()[1], atol=1e-9)
+
+
+def test_low_latency_settings(make_devices, tmp_path):
+    paths, _, _ = make_devices([0.0, 0.0015, 0.0005], duration_s=4.0)
+    outcome = run_replay(paths, tmp_path / "o", config=_cfg(frame_samples=512, hop_samples=128))
+    assert outcome.report["stream"]["output_latency_samples"] == 384
+    np.testing.assert_allclose(np.median(_toa_after(outcome), axis=0), [0, 0.0015, 0.0005], atol=2 / 16000)
+
+
+# -- bad input ------------------------------------------------------------------------------------
+
+def test_missing_and_corrupt_files_are_left_out_with_a_sentence(make_devices, tmp_path):
+    paths, _, _ = make_devices([0.0, 0.002, 0.001], duration_s=4.0)
+    corrupt = tmp_path / "corrupt.wav"
+    corrupt.write_bytes(b"RIFF\x00\x00\x00\x00WAVEfmt garbage" * 10)
+    outcome = run_replay([*paths, tmp_path / "nope.wav", corrupt], tmp_path / "o", config=_cfg())
+    problems = [p for d in outcome.report["devices"] for p in d["problems"]]
+    assert any("does not exist" in p for p in problems)
+    assert any("not a readable audio file" in p for p in problems)
+    assert outcome.report["stream"]["n_devices"] == 3
+
+
+def test_truncated_file_keeps_streaming(make_devices, tmp_path):
+    paths, _, _ = make_devices([0.0, 0.002, 0.001], duration_s=5.0, subtype="PCM_16")
+    data = paths[1].read_bytes()
+    paths[1].write_bytes(data[: len(data) // 2])           # header still claims the full length
+    outcome = run_replay(paths, tmp_path / "o", config=_cfg())
+    assert outcome.report["status"] == "ok"
+    y, _ = sf.read(tmp_path / "o" / "enhanced.wav")
+    assert len(y) > 4.5 * 16000
+
+
+def test_silent_nan_and_clipped_channels(make_devices, tmp_path):
+    paths, _, _ = make_devices([0.0, 0.002, 0.001, -0.001], duration_s=4.0)
+    x, fs = sf.read(paths[1], dtype="float32")
+    sf.write(paths[1], np.zeros_like(x), fs, subtype="FLOAT")          # silent
+    x, fs = sf.read(paths[2], dtype="float32")
+    x[fs:2 * fs] = np.nan
+    sf.write(paths[2], x, fs, subtype="FLOAT")                           # NaN for 1 s
+    x, fs = sf.read(paths[3], dtype="float32")
+    sf.write(paths[3], np.clip(20 * x, -1, 1), fs, subtype="FLOAT")     # clipped
+    outcome = run_replay(paths, tmp_path / "o", config=_cfg())
+    devs = outcome.report["devices"]
+    assert devs[1]["n_silent_blocks"] == devs[1]["n_blocks"]
+    assert devs[2]["n_nan_samples"] == fs
+    assert devs[3]["n_clipped_samples"] > 0
+    y = outcome.pipeline.enhanced_signal()
+    assert np.isfinite(y).all() and np.abs(y).max() > 0.01
+    assert any("silent throughout" in p for p in devs[1]["problems"])
+
+
+def test_single_device_passes_through(make_devices, tmp_path):
+    paths, src, _ = make_devices([0.0], duration_s=3.0)
+    outcome = run_replay(paths[:1], tmp_path / "o", config=_cfg())
+    x, _ = sf.read(paths[0], dtype="float32")
+    y = outcome.pipeline.enhanced_signal()
+    np.testing.assert_allclose(y[: len(x)], x[: len(y)], atol=1e-5)
+
+
+def test_device_that_starts_after_the_others_ended(make_devices, tmp_path):
+    paths, _, _ = make_devices([0.0, 0.002], duration_s=4.0)
+    late = tmp_path / "late.wav"
+    rng = np.random.default_rng(3)
+    sf.write(late, (0.05 * rng.standard_normal(4 * 16000)).astype(np.float32), 16000)  # shares nothing
+    outcome = run_replay([*paths, late], tmp_path / "o", config=_cfg())
+    assert outcome.report["stream"]["aligned"] == [True, True, False]
+    assert any("left out of the beamformer" in m for m in outcome.report["messages"])
+
+
+def test_different_lengths_and_channel_counts(make_devices, tmp_path):
+    paths, _, _ = make_devices([0.0, 0.002, 0.001], duration_s=5.0)
+    x, fs = sf.read(paths[1], dtype="float32")
+    sf.write(paths[1], np.stack([x[: 3 * fs], x[: 3 * fs]], axis=1), fs)   # stereo, 3 s
+    outcome = run_replay(paths, tmp_path / "o", config=_cfg())
+    assert outcome.report["devices"][1]["n_file_channels"] == 2
+    assert outcome.report["status"] == "ok"
+
+
+def test_no_readable_input_is_one_sentence(tmp_path, capsys):
+    with pytest.raises(StreamError, match="None of the 2 input files could be read"):
+        run_replay([tmp_path / "a.wav", tmp_path / "b.wav"], tmp_path / "o", config=_cfg())
+    assert main(["replay", str(tmp_path / "a.wav"), "--out", str(tmp_path / "o2")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "None of the 1 input files could be read" in err
+    assert (tmp_path / "o" / "report.json").exists()
+
+
+def test_bad_options_are_one_sentence(make_devices, tmp_path, capsys):
+    paths, _, _ = make_devices([0.0, 0.001], duration_s=2.0)
+    with pytest.raises(ConfigError, match="hop_samples=300 must divide frame_samples=1024"):
+        run_replay(paths, tmp_path / "o", config=_cfg(frame_samples=1024, hop_samples=300))
+    cfg = tmp_path / "c.toml"
+    cfg.write_text("estimatr = 'kalman'\n")
+    assert main(["replay", *map(str, paths), "--out", str(tmp_path / "o"), "--config", str(cfg)]) == 2
+    assert "unknown option 'estimatr'" in capsys.readouterr().err
+    with pytest.raises(InputFileError):
+        ReplaySource([])
+
+
+def test_cli_replay_with_config_file(make_devices, tmp_path, capsys):
+    paths, _, _ = make_devices([0.0, 0.002, 0.001], duration_s=3.0)
+    cfg = tmp_path / "c.toml"
+    cfg.write_text("estimator = 'pinv'\nframe_samples = 512\nhop_samples = 128\nplots = false\n")
+    rc = main(["replay", *map(str, paths), "--out", str(tmp_path / "o"), "--config", str(cfg),
+               "--estimator", "kalman", "--no-progress", "--align-window-s", "2"])
+    assert rc == 0
+    report = json.loads((tmp_path / "o" / "report.json").read_text())
+    assert report["settings"]["estimator"] == "kalman"     # the CLI wins over the config file
+    assert report["settings"]["frame_samples"] == 512
+    assert "adhoc-array replay: ok" in capsys.readouterr().out
