@@ -22,22 +22,29 @@ cross-power matrix of the aligned spectra, summed over the bins of ``weight_band
 
     ``C_ij = E[ sum_b Re(Z_i(b) Z_j(b)^*) ]  ~  g_i g_j P_S + delta_ij sigma_i^2``
 
-(exponential forgetting, time constant ``weight_time_constant_s``), gives the gains from a rank-one
-fit to its off-diagonal part (a channel is never compared with itself, so it cannot vote for
-itself) and the noise power from the rest of the diagonal:
+(bias-corrected exponential forgetting, time constant ``weight_time_constant_s``), gives the gains
+from a rank-one fit to its off-diagonal part (a channel is never compared with itself, so it cannot
+vote for itself) and the noise power from the rest of the diagonal:
 
     ``g = argmin_g sum_{i != j} (C_ij - g_i g_j)^2``,
     ``sigma_i^2 = max(C_ii - g_i^2, C_ii 10^(-max_channel_snr_db / 10))``.
 
-The fit is one damped alternating least-squares step per frame, warm-started from the previous
-frame (the statistics move slowly, so it tracks the fixed point). MRC weights
-``w_i ~ g_i / sigma_i^2`` maximise the output target-to-noise ratio under this model (output SNR =
-sum of the channel SNRs), then are floored at ``weight_floor / M_valid`` and normalised to sum to 1.
-``sum_b Re(Z_i Z_j^*)`` is the zero-lag cross-correlation of the band-passed aligned frames (as in
-BeamformIt), so misaligned or diffuse components contribute little. With two valid channels the
-rank-one fit cannot separate gain from noise; the gains then keep the ratio of their first estimate
-(``sqrt`` of the channel powers). One broadband weight per channel: per-band MRC weights were tried
-and lost 0.5-1.4 dB SI-SDR on simulated reverberant scenes (noisier statistics, spectral colouring).
+The fit runs damped alternating least-squares steps warm-started from the previous frame: ten per
+frame during the first second, then one (the statistics move slowly, so it tracks the fixed point).
+MRC weights ``w_i ~ g_i / sigma_i^2`` maximise the output target-to-noise ratio under this model
+(output SNR = sum of the channel SNRs); they are raised to ``weight_exponent``, floored at
+``weight_floor / M_valid`` and normalised to sum to 1. ``sum_b Re(Z_i Z_j^*)`` is the zero-lag
+cross-correlation of the band-passed aligned frames (as in BeamformIt), so misaligned or diffuse
+components contribute little. With two valid channels the rank-one fit cannot separate gain from
+noise; the gains then keep the ratio of their first estimate (``sqrt`` of the channel powers).
+
+Evaluated on pyroomacoustics scenes (6 devices 0.5-3 m from the talker, RT60 0.4 s, dish-washing
+noise, true TOA, frame 1024): SI-SDR +1.3 dB over the best single device and +1.4 dB over
+equal-weight DAS on average, within ~0.5 dB of MRC with oracle weights. Known limits: per-band
+weights lost 0.5-1.4 dB (noisier statistics, spectral colouring), so the weights are broadband; on
+compact arrays (all devices within 1.5 m) devices share coherent reflections/noise, the rank-one
+model over-credits neighbours and equal weights are 0.3-0.6 dB better (``weight_exponent=0.7``
+halves that loss at ~0.1 dB cost on spread arrays).
 
 Invalid channels (``valid[i] == False``, a non-finite ``toa_s[i]`` or any non-finite value in the
 channel's spectrum) get weight 0 and are left out of the statistics for that frame; the others are
@@ -86,6 +93,10 @@ class DelayAndSum:
     weight_floor : float, optional
         Each valid channel keeps at least ``weight_floor / M_valid`` before normalisation,
         in ``[0, 1]``. Default 0.
+    weight_exponent : float, optional
+        ``p`` in ``w_i ~ (g_i / sigma_i^2)^p``, in ``[0, 1]``: 1 is MRC (default), 0 equal weights.
+        Values around 0.7 hedge for compact arrays where devices share coherent reflections or noise
+        (the rank-one model then over-credits neighbouring devices) at a small cost on spread arrays.
 
     Attributes
     ----------
@@ -113,6 +124,7 @@ class DelayAndSum:
         weight_band_hz: tuple[float, float] = (100.0, 6000.0),
         max_channel_snr_db: float = 20.0,
         weight_floor: float = 0.0,
+        weight_exponent: float = 1.0,
     ) -> None:
         if int(n_channels) != n_channels or n_channels < 1:
             raise ValueError(f"{n_channels=} must be an integer >= 1")
@@ -129,6 +141,8 @@ class DelayAndSum:
             raise ValueError(f"{max_channel_snr_db=} must be a finite number of dB")
         if not 0.0 <= weight_floor <= 1.0:
             raise ValueError(f"{weight_floor=} must be in [0, 1]")
+        if not 0.0 <= weight_exponent <= 1.0:
+            raise ValueError(f"{weight_exponent=} must be in [0, 1] (0: equal weights, 1: MRC)")
 
         self.n_channels = int(n_channels)
         self.sample_rate_hz = float(sample_rate_hz)
@@ -160,12 +174,11 @@ class DelayAndSum:
         self._forget = float(np.exp(-self.hop_samples / (self.sample_rate_hz * weight_time_constant_s)))
         self._inv_snr_max = float(10.0 ** (-max_channel_snr_db / 10.0))
         self._weight_floor = float(weight_floor)
+        self._weight_exponent = float(weight_exponent)
         # The rank-one fit takes 10 ALS steps per frame during the first second (the statistics
         # move fast), then one step per frame warm-started from the last.
         self._startup_frames = int(np.ceil(self.sample_rate_hz / self.hop_samples))
         self._startup_iter = 10
-        self._wpow = 1.0
-        self._shrink = 0.0
         self.reset()
 
     # ------------------------------------------------------------------ state
@@ -244,7 +257,8 @@ class DelayAndSum:
         X = spectra
         if X.shape != (self.n_bins, self.n_channels):
             raise ValueError(f"{X.shape=} must be ({self.n_bins}, {self.n_channels}) = (n_bins, n_channels)")
-        ok = np.isfinite(self._ones_bins @ X)  # a NaN/inf anywhere in a column propagates to its sum
+        with np.errstate(invalid="ignore", over="ignore"):
+            ok = np.isfinite(self._ones_bins @ X)  # a NaN/inf anywhere in a column propagates to its sum
         if valid is not None:
             ok &= np.asarray(valid, dtype=bool)
         toa = np.asarray(toa_s, dtype=np.float64)
@@ -330,11 +344,9 @@ class DelayAndSum:
         if not total > 0.0:
             return okf / n_ok
         w /= total
-        if self._wpow != 1.0:
-            w = w ** self._wpow
+        if self._weight_exponent != 1.0:  # w_i ~ (g_i / sigma_i^2)^p, between equal (0) and MRC (1)
+            w = w**self._weight_exponent * okf
             w /= w.sum()
-        if self._shrink > 0:
-            w = (1 - self._shrink) * w + self._shrink * okf / n_ok
         if self._weight_floor > 0:
             w = np.maximum(w, self._weight_floor / n_ok) * okf
             w /= w.sum()

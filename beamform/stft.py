@@ -185,9 +185,10 @@ class StreamingStft:
         buf = self._buffer
         buf[:-hop] = buf[hop:]
         buf[-hop:] = block
-        np.multiply(buf, self._window_col, out=self._windowed)
-        self.n_frames += 1
-        return scipy.fft.rfft(self._windowed, axis=0, workers=1)
+        with np.errstate(invalid="ignore", over="ignore"):  # inf/NaN input is flagged downstream
+            np.multiply(buf, self._window_col, out=self._windowed)
+            self.n_frames += 1
+            return scipy.fft.rfft(self._windowed, axis=0, workers=1)
 
 
 class StreamingIstft:

@@ -518,6 +518,7 @@ class _Layout:
         u_rows = uniq // self.n_free
         self.indices = (uniq % self.n_free).astype(np.intp)
         self.indptr = np.concatenate([[0], np.cumsum(np.bincount(u_rows, minlength=nr))])
+        self.nz_rows = u_rows.astype(np.intp)  # row of every stored entry (CSR order)
         # which residuals belong to which mic (per-mic diagnostics)
         self.res_mic = np.concatenate([self.s_mic, self.m_mic, np.full(no, -1)])
 
@@ -562,9 +563,11 @@ class _Layout:
             a = j.T @ j
             g = None if r is None else j.T @ (r if w is None else r * sw)
         else:
-            jw = j if w is None else scipy.sparse.diags(w) @ j
-            a = (jw.T @ j).toarray()
-            g = None if r is None else jw.T @ r
+            if w is not None:
+                sw = np.sqrt(w)
+                j.data *= sw[self.nz_rows]  # row scaling in place: one sparse product instead of two
+            a = (j.T @ j).toarray()
+            g = None if r is None else j.T @ (r if w is None else r * sw)
         return a, g
 
 
@@ -635,8 +638,10 @@ def _levenberg_marquardt(lay: _Layout, p0: np.ndarray, *, loss: str, f_scale: fl
     while it < max_iterations:
         it += 1
         # More's scaling: the running maximum of diag(A) keeps down-weighted directions damped
-        d = np.maximum(d, np.maximum(np.diag(a), 1e-12 * max(np.max(np.diag(a)), 1e-300)))
-        if np.max(np.abs(g) / np.sqrt(d)) <= 1e-10 * (1.0 + np.sqrt(2.0 * cost)):
+        da = a.diagonal()
+        d = np.maximum(d, np.maximum(da, 1e-12 * max(da.max(), 1e-300)))
+        sd = np.sqrt(d)
+        if np.max(np.abs(g) / sd) <= 1e-10 * (1.0 + np.sqrt(2.0 * cost)):
             return _Run(p, "converged", cost, it)
         m = a.copy()
         m.flat[::len(d) + 1] += lam * d
@@ -649,7 +654,7 @@ def _levenberg_marquardt(lay: _Layout, p0: np.ndarray, *, loss: str, f_scale: fl
         big = np.max(np.abs(h[pos_cols])) if len(pos_cols) else 0.0
         if big > max_step_m:  # trust region on positions: no jump beyond the scene size in one step
             h *= max_step_m / big
-        step_scaled = np.max(np.abs(h) * np.sqrt(d))
+        step_scaled = np.max(np.abs(h) * sd)
         p_new = p.copy()
         p_new[free] += h
         r_new = resid(p_new)
@@ -763,16 +768,16 @@ class _MicBatch:
         self.theta_now = np.stack([delta[self.mics], tau[self.mics]], 1)
         self.x_now = x[self.mics]
 
-    def grid_search(self, dist_t: np.ndarray, cap: float, n_best: int):
+    def grid_search(self, dist_t: np.ndarray, cap: float, n_best: int, which: np.ndarray | None = None):
         """The ``n_best`` grid points per mic with the lowest truncated score ``sum min(r^2, cap^2)``, ``theta``
         eliminated by least squares (residual projected out of ``A``'s range). ``dist_t``: (K, G).
-        Returns grid indices (b, n_best) and theta (b, n_best, 2). One mic at a time keeps the
-        temporaries small (cache-resident)."""
+        Returns grid indices (b, n_best) and theta (b, n_best, 2) (rows outside ``which`` are 0). One mic at
+        a time keeps the temporaries small (cache-resident)."""
         b = len(self.mics)
         n_best = min(n_best, dist_t.shape[1])
         top = np.zeros((b, n_best), dtype=np.intp)
         th = np.zeros((b, n_best, 2))
-        for q in range(b):
+        for q in (range(b) if which is None else which):
             nr = self.n_rows[q]
             a = self.a[q, :nr]
             wa = (self.w[q, :nr] / self.c)[:, None]
@@ -859,24 +864,29 @@ class _MicBatch:
 
 def _best_mic_positions(lay: _Layout, p: np.ndarray, mics, *, use_m: bool, grid: np.ndarray, f: float = 3.0,
                         cap: float = 10.0, n_best: int = 4, skip_near_current_m: float | None = None,
-                        s_rows: np.ndarray | None = None):
+                        s_rows: np.ndarray | None = None, min_current_cost: float | None = None):
     """Per-mic global search of each mic's own subproblem (events and mic 0 fixed): grid, then local
     refinement of the ``n_best`` best grid points (those closer than ``skip_near_current_m`` to the current
-    estimate are skipped: the global solve already refined that basin). Returns the batch, best positions
-    (b, 3), theta (b, 2), best cost (b,; inf when nothing was refined) and the cost at the current estimate."""
+    estimate are skipped: the global solve already refined that basin). Only mics whose current cost exceeds
+    ``min_current_cost`` are searched. Returns the batch, best positions (b, 3), theta (b, 2), best cost (b,;
+    inf when nothing was refined) and the cost at the current estimate (b,)."""
     batch = _MicBatch(lay, p, mics, use_m=use_m, s_rows=s_rows)
+    now = batch.costs(batch.x_now, batch.theta_now, f)
+    b = len(batch.mics)
+    which = np.arange(b) if min_current_cost is None else np.nonzero(now > min_current_cost)[0]
+    xb, thb, cb = batch.x_now.copy(), batch.theta_now.copy(), np.full(b, np.inf)
+    if len(which) == 0:
+        return batch, xb, thb, cb, now
     s = lay.unpack(p)[3]
     dist_t = np.sqrt(np.sum((s[:, None, :] - grid[None, :, :]) ** 2, -1))  # (K, G), shared by all mics
-    top, th = batch.grid_search(dist_t, cap, n_best)
-    b, nb = top.shape
+    top, th = batch.grid_search(dist_t, cap, n_best, which)
     cand = grid[top]  # (b, nb, 3)
-    use = np.ones((b, nb), dtype=bool)
+    use = np.zeros(top.shape, dtype=bool)
+    use[which] = True
     if skip_near_current_m is not None:
-        use = np.linalg.norm(cand - batch.x_now[:, None, :], axis=2) > skip_near_current_m
-    now = batch.costs(batch.x_now, batch.theta_now, f)
-    xb, thb, cb = batch.x_now.copy(), batch.theta_now.copy(), np.full(b, np.inf)
+        use &= np.linalg.norm(cand - batch.x_now[:, None, :], axis=2) > skip_near_current_m
     if skip_near_current_m is None:  # initialisation: fall back on a top grid point
-        xb, thb = cand[:, 0].copy(), th[:, 0].copy()
+        xb[which], thb[which] = cand[which, 0], th[which, 0]
     if np.any(use):
         rep = np.nonzero(use)[0]
         h = _grid_step_m(grid)
@@ -975,8 +985,10 @@ def _certify(lay: _Layout, p: np.ndarray, method: str, grid: np.ndarray, f: floa
     mics = [i for i in range(lay.n) if counts[i] >= 6 and (method == "hybrid" or i > 0)]
     if not mics:
         return [], p
+    # a move needs best < 0.8 * now - 4, impossible unless now > 5: mics that fit well are not searched
     batch, xb, thb, cb, cnow = _best_mic_positions(lay, p, mics, use_m=True, grid=grid, f=f,
-                                                   skip_near_current_m=2.5 * _grid_step_m(grid))
+                                                   skip_near_current_m=2.5 * _grid_step_m(grid),
+                                                   min_current_cost=5.0)
     q = p.copy()
     moved = []
     for b, i in enumerate(batch.mics):
@@ -1001,9 +1013,8 @@ def _odometry_gauge(problem: HybridTdoaProblem):
 def _apply_gauge(lay: _Layout, p: np.ndarray) -> np.ndarray:
     p = p.copy()
     p[lay.o_tau] = 0.0
-    p[lay.o_s:lay.o_s + 3] = 0.0
-    p[lay.o_s + 4:lay.o_s + 6] = 0.0
-    p[lay.o_s + 8] = 0.0
+    fixed_s = ~lay.free[lay.o_s:lay.o_s + 9]
+    p[lay.o_s:lay.o_s + 9][fixed_s] = 0.0
     if not lay.free[lay.o_del]:
         p[lay.o_del + 1:lay.o_s] -= p[lay.o_del]
         p[lay.o_del] = 0.0
@@ -1027,14 +1038,16 @@ def _diagnostics(lay: _Layout, p: np.ndarray, mask: np.ndarray | None = None) ->
     return {"chi2_per_dof": float(rk @ rk) / dof, "residual_scale": scale,
             "inlier_fraction": float(np.mean(inl)) if len(rk) else 1.0, "worst_mic_scale": worst,
             "odometry_rms": float(np.sqrt(np.mean(ro * ro))) if len(ro) else 0.0,
-            "n_outliers": int(len(r) - keep.sum())}
+            "n_outliers": int(len(r) - keep.sum()),
+            "cost_per_dof": 2.0 * _loss(rk, "soft_l1", 3.0)[0] / dof}
 
 
-def _plausible(diag: dict, max_residual_scale: float, max_odometry_rms: float) -> bool:
-    """Residuals consistent with the assumed noise: robust TDOA scale, no mic fitting far worse than the
-    rest, most residuals inliers, and an event trajectory that agrees with the odometry (a wrong basin often
-    fits the TDOAs by bending the trajectory)."""
+def _plausible(diag: dict, max_residual_scale: float, max_odometry_rms: float, max_cost_per_dof: float) -> bool:
+    """Residuals consistent with the assumed noise: robust TDOA scale, robust cost per degree of freedom,
+    no mic fitting far worse than the rest, most residuals inliers, and an event trajectory that agrees with
+    the odometry (a wrong basin often fits the TDOAs by bending the trajectory)."""
     return (diag["residual_scale"] <= max_residual_scale
+            and diag["cost_per_dof"] <= max_cost_per_dof
             and diag["worst_mic_scale"] <= max(3.0 * diag["residual_scale"], 2.0 * max_residual_scale)
             and diag["inlier_fraction"] >= 0.7
             and diag["odometry_rms"] <= max_odometry_rms)
@@ -1043,8 +1056,8 @@ def _plausible(diag: dict, max_residual_scale: float, max_odometry_rms: float) -
 def solve(problem: HybridTdoaProblem, *, method: Method = "hybrid", init: Scene | None = None,
           rng: np.random.Generator | int | None = None, max_iterations: int = 100, n_starts: int = 3,
           loss: Loss = "soft_l1", f_scale: float = 3.0, max_residual_scale: float = 4.0,
-          max_odometry_rms: float = 2.0, reject_sigma: float | None = 8.0, with_covariance: bool = False,
-          n_grid: int = 700) -> CalibrationResult:
+          max_odometry_rms: float = 2.0, max_cost_per_dof: float = 2.0, reject_sigma: float | None = 8.0,
+          with_covariance: bool = False, n_grid: int = 700) -> CalibrationResult:
     """Calibrate mics and events from hybrid TDOA + odometry (eq. 10). Pure function.
 
     Parameters
@@ -1079,6 +1092,10 @@ def solve(problem: HybridTdoaProblem, *, method: Method = "hybrid", init: Scene 
         as gross mis-detections, dropped, and the solution polished without them (reported in
         ``CalibrationResult.outliers_*``), provided they are at most 10 % of the TDOAs (more points to a wrong
         basin, not to bad detections). None keeps every measurement.
+    max_cost_per_dof : float
+        Largest plausible ``2 * cost / (n_residuals - n_params)`` (soft-L1 at 3 sigma, about 1 when the noise
+        levels are right) for a ``converged`` verdict at the first minimum found (restart otherwise, accept
+        a minimum reached twice).
     max_odometry_rms : float
         Largest plausible RMS of the whitened odometry residuals for a ``converged`` verdict at the first
         minimum found; above it the solver restarts, and accepts the minimum if a second start reaches it too.
@@ -1152,7 +1169,7 @@ def solve(problem: HybridTdoaProblem, *, method: Method = "hybrid", init: Scene 
             if moved:
                 verdict = "suspect_local_minimum"
                 next_p0 = _apply_gauge(lay, q)
-            elif _plausible(diag, max_residual_scale, max_odometry_rms):
+            elif _plausible(diag, max_residual_scale, max_odometry_rms, max_cost_per_dof):
                 verdict = "converged"
             elif any(abs(cost_cmp - c0) <= 1e-6 * max(cost_cmp, 1.0) for c0 in certified_costs):
                 verdict = "converged"  # the same certified minimum from two different starts

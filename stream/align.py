@@ -281,10 +281,9 @@ class Aligner:
         all_ended = all(self._ended)
         while True:
             k = self.next_block
-            if all_ended:
-                if k >= self._end_block():
-                    break
-            else:
+            if self._ended[0] and k >= self._end_block():
+                break
+            if not all_ended:
                 need = [(k + 1) * hop + self.offsets_samples[d] for d in range(self.n_devices)]
                 if any(not self._ended[d] and self._received[d] < need[d] for d in range(self.n_devices)):
                     break

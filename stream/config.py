@@ -40,7 +40,7 @@ class EngineConfig:
     frame_samples: int | None = None
     hop_samples: int | None = None
     max_tdoa_s: float = 0.012
-    weighting: Weighting = "adaptive"
+    weighting: Weighting = "equal"
     # Kalman TOA (eqs. 13-17)
     accel_std_s_per_s2: float = 1e-3
     tdoa_std_s: float = 5e-4

@@ -22,7 +22,6 @@ import warnings
 
 import numpy as np
 import scipy.fft
-import scipy.signal
 
 __all__ = [
     "align_to_reference",

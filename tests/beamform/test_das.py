@@ -1,0 +1,278 @@
+"""Online delay-and-sum: identity, steering sign, streaming equals batch, weighting, invalid channels."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from beamform import DelayAndSum, StreamingStft, delay_and_sum
+
+FS_HZ = 16000.0
+DATA = Path("/work/shared/data/audio")
+
+
+def _stream(das: DelayAndSum, x: np.ndarray, toa_s, valid=None) -> np.ndarray:
+    hop = das.hop_samples
+    n = x.shape[0] // hop
+    toa = np.broadcast_to(np.asarray(toa_s, float), (n, x.shape[1]))
+    ok = None if valid is None else np.broadcast_to(np.asarray(valid, bool), (n, x.shape[1]))
+    return np.concatenate(
+        [das.process(x[k * hop : (k + 1) * hop], toa[k], None if ok is None else ok[k]) for k in range(n)]
+    )
+
+
+def _frac_delay(x: np.ndarray, delay_samples: float) -> np.ndarray:
+    """x(t - d) by an FFT phase ramp on a zero-padded copy (exact for band-limited x)."""
+    n = 2 * len(x)
+    X = np.fft.rfft(x, n)
+    w = 2 * np.pi * np.arange(len(X)) / n
+    return np.fft.irfft(X * np.exp(-1j * w * delay_samples), n)[: len(x)]
+
+
+def _si_sdr_db(est, ref):
+    a = np.dot(est, ref) / np.dot(ref, ref)
+    return 10 * np.log10(np.sum((a * ref) ** 2) / np.sum((a * ref - est) ** 2))
+
+
+def _speechlike(n: int, rng) -> np.ndarray:
+    """Low-passed noise with a syllable-rate envelope, unit peak."""
+    x = np.convolve(rng.standard_normal(n + 64), np.hanning(9), mode="same")[:n]
+    env = 0.2 + np.abs(np.sin(np.pi * 4.0 * np.arange(n) / FS_HZ))
+    x = x * env
+    return (x / np.abs(x).max()).astype(np.float64)
+
+
+@pytest.mark.parametrize("weighting", ["equal", "adaptive"])
+@pytest.mark.parametrize("frame,hop", [(512, 128), (1024, 256), (4096, 1024)])
+def test_identical_channels_zero_toa_return_input_delayed_by_latency(weighting, frame, hop):
+    rng = np.random.default_rng(1)
+    m = 4
+    x = rng.standard_normal(hop * (2 * frame // hop + 12)).astype(np.float32)
+    das = DelayAndSum(m, frame_samples=frame, hop_samples=hop, sample_rate_hz=FS_HZ, weighting=weighting)
+    y = _stream(das, np.repeat(x[:, None], m, axis=1), np.zeros(m))
+    assert y.dtype == np.float32 and y.shape == x.shape
+    assert das.latency_samples == frame - hop
+    assert das.latency_s == pytest.approx((frame - hop) / FS_HZ)
+    lat = das.latency_samples
+    np.testing.assert_allclose(y[lat:], x[: len(x) - lat], atol=2e-5)
+    np.testing.assert_allclose(das.channel_weights.sum(), 1.0, rtol=1e-6)
+
+
+@pytest.mark.parametrize("delay_samples", [23.0, -17.0, 7.5])
+def test_steering_with_toa_aligns_a_delayed_channel(delay_samples):
+    rng = np.random.default_rng(2)
+    frame, hop = 1024, 256
+    s = _speechlike(hop * 80, rng)
+    x = np.stack([s, _frac_delay(s, delay_samples)], axis=1).astype(np.float32)  # device 1 hears later
+    lat = frame - hop
+    ref = s[: len(s) - lat]
+
+    def score(toa):
+        y = delay_and_sum(x, toa, frame_samples=frame, hop_samples=hop, sample_rate_hz=FS_HZ, weighting="equal")
+        return np.corrcoef(y[lat + frame : len(s)], ref[frame:])[0, 1]
+
+    steered = score([0.0, delay_samples / FS_HZ])
+    unsteered = score([0.0, 0.0])
+    wrong_sign = score([0.0, -delay_samples / FS_HZ])
+    assert steered > 0.995
+    assert steered > unsteered + 0.01
+    assert steered > wrong_sign + 0.01
+
+
+@settings(max_examples=20, deadline=None)
+@given(
+    weighting=st.sampled_from(["equal", "adaptive"]),
+    frame_hop=st.sampled_from([(64, 16), (128, 32), (256, 64), (128, 64)]),
+    n_blocks=st.integers(min_value=1, max_value=60),
+    n_channels=st.integers(min_value=1, max_value=5),
+    seed=st.integers(min_value=0, max_value=2**31 - 1),
+)
+def test_streaming_equals_batch(weighting, frame_hop, n_blocks, n_channels, seed):
+    frame, hop = frame_hop
+    rng = np.random.default_rng(seed)
+    x = rng.standard_normal((n_blocks * hop, n_channels)).astype(np.float32)
+    x[:, 1:] += x[:, :1]  # a common component so the adaptive fit has something to find
+    toa = rng.uniform(-2e-3, 2e-3, (n_blocks, n_channels))  # time-varying steering
+    toa[:, 0] = 0.0
+    valid = rng.random((n_blocks, n_channels)) > 0.15
+    das = DelayAndSum(n_channels, frame_samples=frame, hop_samples=hop, sample_rate_hz=FS_HZ, weighting=weighting)
+    y_stream = _stream(das, x, toa, valid)
+    y_batch = delay_and_sum(
+        x, toa, frame_samples=frame, hop_samples=hop, sample_rate_hz=FS_HZ, valid=valid, weighting=weighting
+    )
+    np.testing.assert_allclose(y_stream, y_batch, atol=1e-5)
+    # Splitting the run (process the first part, then the rest) changes nothing either.
+    das.reset()
+    cut = int(rng.integers(0, n_blocks + 1))
+    first = _stream(das, x[: cut * hop], toa[:cut], valid[:cut]) if cut else np.zeros(0, np.float32)
+    rest = _stream(das, x[cut * hop :], toa[cut:], valid[cut:]) if cut < n_blocks else np.zeros(0, np.float32)
+    np.testing.assert_array_equal(np.concatenate([first, rest]), y_stream)
+
+
+def test_process_spectra_matches_process():
+    rng = np.random.default_rng(3)
+    m, frame, hop = 3, 256, 64
+    x = rng.standard_normal((hop * 30, m)).astype(np.float32)
+    toa = np.array([0.0, 1e-3, -5e-4])
+    a = DelayAndSum(m, frame_samples=frame, hop_samples=hop, sample_rate_hz=FS_HZ)
+    b = DelayAndSum(m, frame_samples=frame, hop_samples=hop, sample_rate_hz=FS_HZ)
+    ana = StreamingStft(m, frame_samples=frame, hop_samples=hop)
+    for k in range(30):
+        blk = x[k * hop : (k + 1) * hop]
+        np.testing.assert_array_equal(a.process(blk, toa), b.process_spectra(ana.process(blk), toa))
+
+
+@pytest.mark.parametrize("weighting", ["equal", "adaptive"])
+def test_nan_and_invalid_channels_are_excluded(weighting):
+    rng = np.random.default_rng(4)
+    m, frame, hop = 4, 256, 64
+    s = rng.standard_normal(hop * 40).astype(np.float32)
+    x = np.repeat(s[:, None], m, axis=1)
+    x[:, 2] = np.nan  # a dead device
+    x[hop * 5 : hop * 7, 3] = np.inf  # a glitch
+    das = DelayAndSum(m, frame_samples=frame, hop_samples=hop, sample_rate_hz=FS_HZ, weighting=weighting)
+    y = _stream(das, x, np.zeros(m))
+    assert np.all(np.isfinite(y))
+    lat = das.latency_samples
+    np.testing.assert_allclose(y[lat:], s[: len(s) - lat], atol=2e-5)
+    assert das.channel_weights[2] == 0.0
+    np.testing.assert_allclose(das.channel_weights.sum(), 1.0, rtol=1e-6)
+
+    # Flagged invalid: weight 0, the rest renormalised; with none valid the output is silent.
+    das.reset()
+    blk = rng.standard_normal((hop, m)).astype(np.float32)
+    for _ in range(6):
+        das.process(blk, np.zeros(m), valid=np.array([True, False, True, True]))
+    assert das.channel_weights[1] == 0.0
+    np.testing.assert_allclose(das.channel_weights.sum(), 1.0, rtol=1e-6)
+    for _ in range(6):
+        out = das.process(blk, np.zeros(m), valid=np.zeros(m, bool))
+    np.testing.assert_array_equal(das.channel_weights, 0.0)
+    np.testing.assert_array_equal(out, 0.0)
+
+
+def test_nan_toa_excludes_that_device():
+    m, frame, hop = 3, 128, 32
+    rng = np.random.default_rng(5)
+    s = rng.standard_normal(hop * 20).astype(np.float32)
+    x = np.stack([s, s, rng.standard_normal(len(s)).astype(np.float32)], axis=1)
+    das = DelayAndSum(m, frame_samples=frame, hop_samples=hop, sample_rate_hz=FS_HZ, weighting="equal")
+    y = _stream(das, x, [0.0, 0.0, np.nan])
+    lat = das.latency_samples
+    np.testing.assert_allclose(y[lat:], s[: len(s) - lat], atol=2e-5)
+    np.testing.assert_allclose(das.channel_weights, [0.5, 0.5, 0.0])
+
+
+def test_adaptive_weights_follow_channel_snr_and_beat_the_best_channel():
+    rng = np.random.default_rng(6)
+    frame, hop = 512, 128
+    s = _speechlike(int(4 * FS_HZ), rng)
+    snr_db = np.array([10.0, 0.0, -5.0, -10.0, 3.0])
+    p = np.mean(s**2)
+    x = np.stack([s + rng.standard_normal(len(s)) * np.sqrt(p / 10 ** (d / 10)) for d in snr_db], axis=1)
+    x = x.astype(np.float32)
+    lat = frame - hop
+    out = {}
+    for weighting in ("equal", "adaptive"):
+        das = DelayAndSum(len(snr_db), frame_samples=frame, hop_samples=hop, sample_rate_hz=FS_HZ, weighting=weighting)
+        y = _stream(das, x, np.zeros(len(snr_db)))
+        out[weighting] = _si_sdr_db(y[lat + frame :], s[frame : len(y) - lat])
+        if weighting == "adaptive":
+            w = das.channel_weights
+            assert np.all(w >= 0) and w.sum() == pytest.approx(1.0, rel=1e-6)
+            assert list(np.argsort(-w)) == list(np.argsort(-snr_db))  # MRC ranks by SNR
+    best_single = max(_si_sdr_db(x[:, i], s) for i in range(len(snr_db)))
+    # MRC: output SNR ~ sum of channel SNRs = 10 log10(10 + 1 + .32 + .1 + 2) = 11.3 dB.
+    assert out["adaptive"] > best_single + 0.8
+    assert out["adaptive"] > out["equal"] + 3.0
+
+
+@settings(max_examples=15, deadline=None)
+@given(
+    n_channels=st.integers(min_value=1, max_value=6),
+    seed=st.integers(min_value=0, max_value=2**31 - 1),
+)
+def test_adaptive_weights_are_a_convex_combination(n_channels, seed):
+    rng = np.random.default_rng(seed)
+    hop = 32
+    das = DelayAndSum(n_channels, frame_samples=128, hop_samples=hop, sample_rate_hz=FS_HZ)
+    gains = rng.uniform(0.0, 2.0, n_channels)
+    for _ in range(20):
+        blk = rng.standard_normal((hop, 1)) * gains + 0.3 * rng.standard_normal((hop, n_channels))
+        das.process(blk.astype(np.float32), rng.uniform(-1e-3, 1e-3, n_channels))
+        w = das.channel_weights
+        assert w.shape == (n_channels,) and np.all(np.isfinite(w)) and np.all(w >= 0)
+        assert w.sum() == pytest.approx(1.0, rel=1e-5)
+
+
+def test_construction_validation():
+    kw = dict(frame_samples=512, hop_samples=128, sample_rate_hz=FS_HZ)
+    with pytest.raises(ValueError, match="weighting"):
+        DelayAndSum(2, weighting="mvdr", **kw)
+    with pytest.raises(ValueError, match="sample_rate_hz"):
+        DelayAndSum(2, frame_samples=512, hop_samples=128, sample_rate_hz=0.0)
+    with pytest.raises(ValueError, match="hop_samples"):
+        DelayAndSum(2, frame_samples=512, hop_samples=1024, sample_rate_hz=FS_HZ)
+    with pytest.raises(ValueError, match="weight_time_constant_s"):
+        DelayAndSum(2, weight_time_constant_s=-1.0, **kw)
+    with pytest.raises(ValueError, match="weight_exponent"):
+        DelayAndSum(2, weight_exponent=2.0, **kw)
+    das = DelayAndSum(2, **kw)
+    with pytest.raises(ValueError, match="shape"):
+        das.process_spectra(np.zeros((100, 2), np.complex64), np.zeros(2))
+    with pytest.raises(ValueError, match="toa.shape"):
+        das.process_spectra(np.zeros((257, 2), np.complex64), np.zeros(3))
+
+
+def _reverberant_scene():
+    """6 devices 0.5-3 m from a talker in a 6 x 5 x 3 m room (RT60 0.4 s) with dish-washing noise."""
+    pra = pytest.importorskip("pyroomacoustics")
+    sf = pytest.importorskip("soundfile")
+    speech_path = DATA / "cmu-arctic-16k" / "cmu_arctic_us_aew_a0001.wav"
+    noise_path = DATA / "speechcommands-noise" / "doing_the_dishes.wav"
+    if not (speech_path.exists() and noise_path.exists()):
+        pytest.skip("shared audio data not available")
+    speech, fs = sf.read(speech_path)
+    noise, fs_n = sf.read(noise_path)
+    assert fs == fs_n == FS_HZ
+    noise = noise[: len(speech)] if noise.ndim == 1 else noise[: len(speech), 0]
+    room_dim = [6.0, 5.0, 3.0]
+    e_abs, max_order = pra.inverse_sabine(0.4, room_dim)
+    room = pra.ShoeBox(room_dim, fs=fs, materials=pra.Material(e_abs), max_order=max_order)
+    src = np.array([2.4, 2.5, 1.5])
+    rng = np.random.default_rng(0)
+    dist = np.array([2.0, 1.5, 3.0, 2.5, 0.5, 1.0])
+    az = rng.uniform(0, 2 * np.pi, len(dist))
+    mics = src + np.stack([dist * np.cos(az), dist * np.sin(az), np.zeros_like(dist)], axis=1)
+    mics[:, :2] = np.clip(mics[:, :2], 0.2, np.array(room_dim[:2]) - 0.2)
+    mics[:, 2] = rng.uniform(0.8, 1.3, len(dist))
+    room.add_source(src, signal=speech)
+    room.add_source([5.4, 0.6, 1.0], signal=noise)
+    room.add_microphone_array(mics.T)
+    premix = room.simulate(return_premix=True)
+    n = len(speech)
+    sp, nz = premix[0][:, :n], premix[1][:, :n]
+    nz *= np.sqrt(np.mean(sp**2) / np.mean(nz**2))  # 0 dB average noise level
+    x = (sp + nz).T.astype(np.float32)
+    d = np.linalg.norm(mics - src, axis=1)
+    toa_true_s = (d - d[0]) / 343.0
+    # pyroomacoustics RIRs carry a fixed frac_delay_length // 2 sample delay (cancels in the TOA).
+    offset = pra.constants.get("frac_delay_length") // 2
+    refs = np.stack([_frac_delay(speech, di / 343.0 * fs + offset) for di in d], axis=1)
+    return x, toa_true_s, refs
+
+
+def test_adaptive_beats_best_device_on_a_reverberant_ad_hoc_scene():
+    x, toa, refs = _reverberant_scene()
+    frame, hop = 1024, 256
+    lat = frame - hop
+    scores = {}
+    for weighting in ("equal", "adaptive"):
+        y = delay_and_sum(x, toa, frame_samples=frame, hop_samples=hop, sample_rate_hz=FS_HZ, weighting=weighting)
+        scores[weighting] = _si_sdr_db(y[lat:], refs[: len(y) - lat, 0])
+    singles = [_si_sdr_db(x[:, i], refs[:, i]) for i in range(x.shape[1])]
+    assert scores["adaptive"] >= max(singles) + 0.3, (scores, singles)
+    assert scores["adaptive"] >= scores["equal"] + 0.3, (scores, singles)

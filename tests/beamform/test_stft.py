@@ -1,0 +1,106 @@
+"""Streaming STFT / WOLA synthesis: identity, framing convention, streaming equals batch."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.signal
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from beamform.stft import StreamingIstft, StreamingStft, dual_window, istft, stft
+
+PAIRS = [(4096, 1024), (512, 128), (1024, 256), (512, 256), (256, 64), (64, 16), (100, 25), (48, 16)]
+
+
+def _stream(x: np.ndarray, frame: int, hop: int, window="hann"):
+    """Run analysis + synthesis hop by hop; return (spectra, output)."""
+    ana = StreamingStft(x.shape[1], frame_samples=frame, hop_samples=hop, window=window)
+    syn = [StreamingIstft(frame_samples=frame, hop_samples=hop, analysis_window=ana.analysis_window) for _ in range(x.shape[1])]
+    specs, outs = [], []
+    for k in range(x.shape[0] // hop):
+        S = ana.process(x[k * hop : (k + 1) * hop])
+        specs.append(S)
+        outs.append(np.stack([syn[c].process(S[:, c]) for c in range(x.shape[1])], axis=1))
+    return np.array(specs), np.concatenate(outs)
+
+
+@pytest.mark.parametrize("frame,hop", PAIRS)
+def test_analysis_synthesis_is_identity_delayed_by_latency(frame, hop):
+    rng = np.random.default_rng(frame + hop)
+    x = rng.standard_normal((hop * (3 * frame // hop + 5), 2)).astype(np.float32)
+    _, y = _stream(x, frame, hop)
+    latency = frame - hop
+    assert StreamingIstft(frame_samples=frame, hop_samples=hop, analysis_window=np.hanning(frame + 1)[:-1]).latency_samples == latency
+    np.testing.assert_allclose(y[latency:], x[: len(x) - latency], atol=1e-5)
+    np.testing.assert_allclose(y[:latency], 0.0, atol=1e-5)
+
+
+def test_spectra_shape_dtype_and_frame_convention():
+    frame, hop = 16, 4
+    ana = StreamingStft(3, frame_samples=frame, hop_samples=hop)
+    assert ana.analysis_window.dtype == np.float32
+    np.testing.assert_allclose(ana.analysis_window, scipy.signal.get_window("hann", frame, fftbins=True), atol=1e-7)
+    # An impulse at input sample n0 appears in frame k iff (k+1)*hop - frame <= n0 < (k+1)*hop.
+    n0 = 9
+    x = np.zeros((40, 3), np.float32)
+    x[n0] = 1.0
+    for k in range(10):
+        S = ana.process(x[k * hop : (k + 1) * hop])
+        assert S.shape == (frame // 2 + 1, 3) and S.dtype == np.complex64
+        start = (k + 1) * hop - frame
+        expected = np.zeros(frame, np.float32)
+        if start <= n0 < start + frame:
+            expected[n0 - start] = ana.analysis_window[n0 - start]
+        np.testing.assert_allclose(np.fft.irfft(S[:, 0], frame), expected, atol=1e-7)
+
+
+def test_dual_window_of_hann_at_75_percent_is_hann_over_1p5():
+    w = scipy.signal.get_window("hann", 512, fftbins=True)
+    np.testing.assert_allclose(dual_window(w, hop_samples=128), w / 1.5, rtol=1e-6, atol=1e-7)
+
+
+def test_validation():
+    with pytest.raises(ValueError, match="hop_samples"):
+        StreamingStft(1, frame_samples=256, hop_samples=512)
+    with pytest.raises(ValueError, match="hop_samples"):  # periodic Hann at 0 % overlap has a zero
+        StreamingIstft(frame_samples=256, hop_samples=256, analysis_window=np.hanning(257)[:-1])
+    with pytest.raises(ValueError, match="n_channels"):
+        StreamingStft(0, frame_samples=256, hop_samples=64)
+    ana = StreamingStft(2, frame_samples=256, hop_samples=64)
+    with pytest.raises(ValueError, match="block.shape"):
+        ana.process(np.zeros((63, 2), np.float32))
+    with pytest.raises(ValueError, match="window"):
+        StreamingStft(2, frame_samples=256, hop_samples=64, window=np.ones(255))
+
+
+def test_reset_restores_initial_state():
+    rng = np.random.default_rng(0)
+    x = rng.standard_normal((256, 1)).astype(np.float32)
+    ana = StreamingStft(1, frame_samples=128, hop_samples=32)
+    first = [ana.process(x[k * 32 : (k + 1) * 32]) for k in range(8)]
+    ana.reset()
+    again = [ana.process(x[k * 32 : (k + 1) * 32]) for k in range(8)]
+    np.testing.assert_array_equal(np.array(first), np.array(again))
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    frame_pow=st.integers(min_value=4, max_value=9),
+    overlap=st.sampled_from([2, 4, 8]),
+    n_blocks=st.integers(min_value=1, max_value=40),
+    n_channels=st.integers(min_value=1, max_value=3),
+    seed=st.integers(min_value=0, max_value=2**31 - 1),
+)
+def test_streaming_equals_batch_and_identity_for_any_block_count(frame_pow, overlap, n_blocks, n_channels, seed):
+    frame = 2**frame_pow
+    hop = frame // overlap
+    rng = np.random.default_rng(seed)
+    x = rng.standard_normal((n_blocks * hop, n_channels)).astype(np.float32)
+    specs, y = _stream(x, frame, hop)
+    S = stft(x, frame_samples=frame, hop_samples=hop)
+    np.testing.assert_allclose(specs, S, atol=1e-5)
+    yb = istft(S, frame_samples=frame, hop_samples=hop)
+    np.testing.assert_allclose(y, yb, atol=1e-5)
+    latency = frame - hop
+    if len(x) > latency:
+        np.testing.assert_allclose(y[latency:], x[: len(x) - latency], atol=2e-5)
