@@ -96,25 +96,37 @@ def plot_toa_tracks(
         if gate.shape != toa.shape:
             raise ValueError(f"{gate.shape=} must be (n_frames,) or {toa.shape}")
 
-    fig, ax = plt.subplots(figsize=(9, 4.8), constrained_layout=True)
+    # one panel per device, each centred on its own median TOA: the offsets between devices are
+    # seconds, the tracking errors fractions of a millisecond, so one shared axis hides the latter
+    n_panels = n_mics - 1
+    if n_panels < 1:
+        fig, ax = plt.subplots(figsize=(9, 2.5), constrained_layout=True)
+        ax.text(0.5, 0.5, "one device: no relative TOA", ha="center", va="center", transform=ax.transAxes)
+        ax.set_axis_off()
+        return _save(fig, path)
+    fig, axes = plt.subplots(n_panels, 1, figsize=(9, 1.2 + 1.35 * n_panels), sharex=True, squeeze=False,
+                             constrained_layout=True)
     colours = plt.get_cmap("tab10")
     for i in range(1, n_mics):
+        ax = axes[i - 1, 0]
         c = colours((i - 1) % 10)
-        ax.plot(t, toa[:, i] * 1e3, "-", color=c, lw=0.6, alpha=0.6)
-        ax.plot(t, toa[:, i] * 1e3, ".", color=c, ms=3.5, label=f"{names[i]} estimate")
+        centre = float(np.nanmedian(true[:, i] if true is not None else toa[:, i]))
+        ax.plot(t, (toa[:, i] - centre) * 1e3, "-", color=c, lw=0.6, alpha=0.6)
+        ax.plot(t, (toa[:, i] - centre) * 1e3, ".", color=c, ms=3, label="estimate")
         if gate is not None and gate[:, i].any():
             g = gate[:, i]
-            ax.plot(t[g], toa[g, i] * 1e3, "x", color="0.35", ms=5, mew=1.0)
-    if true is not None:
-        for i in range(1, n_mics):
-            ax.plot(tt, true[:, i] * 1e3, "-", color="k", lw=1.6, label="ground truth" if i == 1 else None)
-    if gate is not None and gate[:, 1:].any():
-        ax.plot([], [], "x", color="0.35", ms=5, label="gated (clutter)")
-    ax.set_xlabel("time (s)")
-    ax.set_ylabel(f"relative TOA to {names[0]} (ms)")
-    ax.set_title(title or "Relative time of arrival per device")
-    ax.grid(True, alpha=0.3)
-    ax.legend(loc="best", fontsize=8, ncol=2 if n_mics > 5 else 1, framealpha=0.85)
+            ax.plot(t[g], (toa[g, i] - centre) * 1e3, "x", color="0.35", ms=4, mew=0.9, label="gated (clutter)")
+        if true is not None:
+            ax.plot(tt, (true[:, i] - centre) * 1e3, "-", color="k", lw=1.4, label="ground truth")
+            spread = np.nanmax(np.abs(true[:, i] - centre)) * 1e3
+            ax.set_ylim(-max(0.5, 3 * spread), max(0.5, 3 * spread))
+        ax.set_ylabel(f"{names[i]}\n{centre * 1e3:+.2f} ms", fontsize=8)
+        ax.grid(True, alpha=0.3)
+        if i == 1:
+            ax.legend(loc="upper right", fontsize=7, ncol=3, framealpha=0.85)
+    axes[-1, 0].set_xlabel("time (s)")
+    fig.suptitle(title or "Relative time of arrival per device", fontsize=11)
+    fig.supylabel(f"TOA relative to {names[0]}, minus the value shown (ms)", fontsize=9)
     return _save(fig, path)
 
 
