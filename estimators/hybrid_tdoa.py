@@ -25,11 +25,29 @@ Measurements (all optional per entry: NaN marks a missed chirp):
 
 - odometry ``odometry_m[j] = s_{j+1} - s_j + v_j`` in the source's odometry frame (eq. 9).
 
+Both TDOAs follow :mod:`estimators.conventions` (``tdoa[i, j] = toa[i] - toa[j]``): TDOA-M is ``tdoa[i, 0]``.
+
+Solver
+------
 The weighted nonlinear least squares of eq. (10), ``W = diag(sigma_tdoa^2 I, sigma_odo^2 I)``, is solved by
-Levenberg-Marquardt (Marquardt scaling, Nielsen damping update) with an optional robust loss (iteratively
-reweighted), on a sparse Jacobian when the problem is large. ``method="baseline"`` drops TDOA-S (the
-TDOA-M + odometry method the paper compares with); then only relative drifts are observable and
-``delta_0 = 0``.
+Levenberg-Marquardt (More's scaling, Nielsen's damping update, a trust region on position steps) with a robust
+loss (soft-L1 by default, IRLS, its scale following the robust residual scale so that far from the solution
+it is plain least squares), on a dense or sparse Jacobian (fixed pattern, ``J^T W J`` then Cholesky).
+Budgets are iterations, never wall-clock time. Each start ends with a verdict:
+
+- the minimum is *certified* mic by mic: each mic's own subproblem (its TDOA-S and TDOA-M, events and mic 0
+  fixed) is searched globally on a grid and refined; a mic with a clearly better position elsewhere makes the
+  verdict ``suspect_local_minimum`` and the next start moves it there;
+- residuals must be plausible for the assumed noise (robust scale, cost per degree of freedom, per-mic fit,
+  odometry consistency); an implausible but certified minimum triggers one more start and is accepted as
+  ``converged`` if reached again;
+- after convergence, TDOAs above ``reject_sigma`` are dropped as gross mis-detections and the solution is
+  polished without them (reported in the result).
+
+Restarts after a bad verdict use a built-in initialisation instead of random draws: events from the
+integrated odometry, each mic by a grid search on its own TDOA-S (position and least-squares drift), offsets
+from TDOA-M. ``method="baseline"`` drops TDOA-S (the TDOA-M + odometry method the paper compares with); only
+relative drifts are observable then (``delta_0 = 0``) and its restarts are random around the odometry.
 
 Frames
 ------
@@ -611,10 +629,13 @@ def _adaptive_scale(r: np.ndarray, f_scale: float, loss: str) -> float:
 
 def _levenberg_marquardt(lay: _Layout, p0: np.ndarray, *, loss: str, f_scale: float, max_iterations: int,
                          ftol: float = 1e-8, xtol: float = 1e-5, limit_m: float = 1e3,
-                         max_step_m: float = np.inf, mask: np.ndarray | None = None) -> _Run:
+                         max_step_m: float = np.inf, mask: np.ndarray | None = None,
+                         stall_cost: float = np.inf) -> _Run:
     """Levenberg-Marquardt with More's scaling (running max of ``diag(A)``), Nielsen's damping update, a
     position trust region and IRLS for the robust loss; the loss scale adapts to the robust residual scale at
-    every accepted step. ``mask`` (0/1 per residual) drops rejected measurements."""
+    every accepted step. ``mask`` (0/1 per residual) drops rejected measurements. A run whose cost is still
+    above ``stall_cost`` and fell by less than 5 % over the last 10 iterations stops as ``max_iterations``
+    (stalled in a wrong region: a restart is cheaper)."""
     p = p0.copy()
     free = lay.free
 
@@ -635,8 +656,12 @@ def _levenberg_marquardt(lay: _Layout, p0: np.ndarray, *, loss: str, f_scale: fl
     pos_cols = np.concatenate([lay.col_of[:3 * lay.n], lay.col_of[lay.o_s:]])
     pos_cols = pos_cols[pos_cols >= 0]
     it = 0
+    history = [cost]
     while it < max_iterations:
         it += 1
+        history.append(cost)
+        if it > 20 and cost > stall_cost and history[-11] - cost < 0.05 * cost:
+            return _Run(p, "max_iterations", cost, it)
         # More's scaling: the running maximum of diag(A) keeps down-weighted directions damped
         da = a.diagonal()
         d = np.maximum(d, np.maximum(da, 1e-12 * max(da.max(), 1e-300)))
@@ -1072,7 +1097,8 @@ def solve(problem: HybridTdoaProblem, *, method: Method = "hybrid", init: Scene 
     rng : Generator, int or None
         For random restarts (baseline, or mics without TDOA-S).
     max_iterations : int
-        Levenberg-Marquardt iteration budget per start (no wall-clock limit).
+        Levenberg-Marquardt iteration budget per start (no wall-clock limit). A start that stalls at an
+        implausible cost (see ``max_cost_per_dof``) ends early.
     n_starts : int
         Maximum number of starts. A restart happens only after a verdict other than ``converged``; the
         second start uses the built-in initialisation, later ones perturb it (hybrid) or draw random mic
@@ -1085,22 +1111,22 @@ def solve(problem: HybridTdoaProblem, *, method: Method = "hybrid", init: Scene 
     max_residual_scale : float
         Largest plausible robust residual scale (``1.4826 median |r| / sigma``) for a ``converged`` verdict;
         real detections are often 1-3 sigma of the nominal noise.
-    n_grid : int
-        Number of points of the per-mic search grid (initialisation and local-minimum check).
+    max_odometry_rms : float
+        Largest plausible RMS of the whitened odometry residuals for a ``converged`` verdict at the first
+        minimum found; above it the solver restarts, and accepts the minimum if a second start reaches it too.
+    max_cost_per_dof : float
+        Largest plausible ``2 * cost / (n_residuals - n_params)`` (soft-L1 at 3 sigma, about 1 when the noise
+        levels are right) for a ``converged`` verdict at the first minimum found (restart otherwise, accept
+        a minimum reached twice).
     reject_sigma : float or None
         After a start converges, TDOA residuals above ``reject_sigma * max(1, residual_scale)`` sigmas are taken
         as gross mis-detections, dropped, and the solution polished without them (reported in
         ``CalibrationResult.outliers_*``), provided they are at most 10 % of the TDOAs (more points to a wrong
         basin, not to bad detections). None keeps every measurement.
-    max_cost_per_dof : float
-        Largest plausible ``2 * cost / (n_residuals - n_params)`` (soft-L1 at 3 sigma, about 1 when the noise
-        levels are right) for a ``converged`` verdict at the first minimum found (restart otherwise, accept
-        a minimum reached twice).
-    max_odometry_rms : float
-        Largest plausible RMS of the whitened odometry residuals for a ``converged`` verdict at the first
-        minimum found; above it the solver restarts, and accepts the minimum if a second start reaches it too.
     with_covariance : bool
         Also compute per-mic mic-frame location std from the Fisher information at the estimate.
+    n_grid : int
+        Number of points of the per-mic search grid (initialisation and local-minimum check).
 
     Returns
     -------
@@ -1135,6 +1161,7 @@ def solve(problem: HybridTdoaProblem, *, method: Method = "hybrid", init: Scene 
             p[:3 * lay.n] += rng.normal(0.0, 0.3 * scale_m, 3 * lay.n)
         return _apply_gauge(lay, p)
 
+    stall_cost = 0.5 * max_cost_per_dof * max(lay.n_res - lay.n_free, 1)  # an implausible cost
     best = None
     total_it = 0
     starts = 0
@@ -1142,7 +1169,7 @@ def solve(problem: HybridTdoaProblem, *, method: Method = "hybrid", init: Scene 
     p0 = start_from(0)
     for k in range(int(n_starts)):
         run = _levenberg_marquardt(lay, p0, loss=loss, f_scale=f_scale, max_iterations=int(max_iterations),
-                                   limit_m=10.0 * scale_m + 10.0, max_step_m=scale_m)
+                                   limit_m=10.0 * scale_m + 10.0, max_step_m=scale_m, stall_cost=stall_cost)
         starts += 1
         total_it += run.n_iterations
         finite = bool(np.all(np.isfinite(run.p)))

@@ -236,6 +236,10 @@ class KalmanToa(_PairModel):
         Per-pair clutter gate applied before eq. (17): pairs whose innovation exceeds this many
         standard deviations of their predicted spread are left out of the update (counted in
         ``n_pairs_gated``); None (default) keeps the paper's whole-frame gate only.
+    init_max_residual_s : float or None
+        (Re-)initialise only from a frame whose pseudo-inverse fit leaves an RMS TDOA residual
+        below this (seconds): a self-consistent frame. None (default) initialises from the first
+        frame that makes every TOA observable, as the paper does.
 
     Attributes
     ----------
@@ -277,8 +281,12 @@ class KalmanToa(_PairModel):
         min_confidence: float = 0.0,
         confidence_weighted: bool = False,
         pair_gate_sigma: float | None = None,
+        init_max_residual_s: float | None = None,
     ) -> None:
         super().__init__(n_mics, min_confidence)
+        if init_max_residual_s is not None and not init_max_residual_s > 0:
+            raise ValueError(f"{init_max_residual_s=} must be None or > 0 seconds")
+        self.init_max_residual_s = init_max_residual_s
         if pair_gate_sigma is not None and not pair_gate_sigma > 0:
             raise ValueError(f"{pair_gate_sigma=} must be None or > 0 standard deviations")
         self.pair_gate_sigma = pair_gate_sigma
@@ -486,6 +494,13 @@ class KalmanToa(_PairModel):
         m = self._m
         x = np.zeros(2 * m)
         x[:m] = cov_pos @ (self._H0T @ (w * tdoa))
+        if self.init_max_residual_s is not None:
+            # start only from a self-consistent frame: TDOAs of all pairs must agree with one TOA
+            # vector (a pair locked on a reflection breaks the triangle relations tdoa_ij = tdoa_0j - tdoa_0i)
+            ok = w > 0
+            resid = (tdoa - self._H0 @ x[:m])[ok]
+            if resid.size and float(np.sqrt(np.mean(resid**2))) > self.init_max_residual_s:
+                return False
         P = np.zeros((2 * m, 2 * m))
         P[:m, :m] = cov_pos
         P[m:, m:] = self.initial_rate_std_s_per_s**2 * self._eye_m

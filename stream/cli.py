@@ -28,6 +28,8 @@ def _add_engine_options(p: argparse.ArgumentParser) -> None:
     g.add_argument("--tdoa-std-s", type=float, help="Kalman measurement noise: TDOA std in seconds")
     g.add_argument("--gate-probability", type=float, help="Kalman clutter gate (chi-square probability)")
     g.add_argument("--min-confidence", type=float, help="smallest GCC-PHAT peak used (default 5/sqrt(frame))")
+    g.add_argument("--init-max-residual-s", type=float,
+                   help="Kalman starts only from a frame whose pseudo-inverse TDOA residual is below this")
     g.add_argument("--smoother-lag-frames", type=int, help="fixed-lag smoother delay in frames")
     g.add_argument("--align-window-s", type=float, help="audio used for the coarse start alignment")
     g.add_argument("--max-offset-s", type=float, help="largest start offset between devices searched")

@@ -44,8 +44,9 @@ class EngineConfig:
     # Kalman TOA (eqs. 13-17)
     accel_std_s_per_s2: float = 1e-3
     tdoa_std_s: float = 5e-4
-    gate_probability: float = 0.999
+    gate_probability: float = 0.99
     min_confidence: float | None = None
+    init_max_residual_s: float = 5e-5
     smoother_lag_frames: int = 4
     # coarse alignment
     align_window_s: float = 8.0

@@ -39,7 +39,7 @@ def make_estimator(config: EngineConfig, n_devices: int):
         return estimators.PinvToa(n_devices, min_confidence=config.min_confidence)
     kwargs = dict(frame_period_s=frame_period_s, accel_std_s_per_s2=config.accel_std_s_per_s2,
                   tdoa_std_s=config.tdoa_std_s, gate_probability=config.gate_probability,
-                  min_confidence=config.min_confidence)
+                  min_confidence=config.min_confidence, init_max_residual_s=config.init_max_residual_s)
     if config.estimator == "smoother":
         return estimators.FixedLagKalmanToa(n_devices, lag_frames=config.smoother_lag_frames, **kwargs)
     return estimators.KalmanToa(n_devices, **kwargs)
