@@ -1,6 +1,8 @@
 """Simulations of the hybrid-TDOA calibration paper (arXiv 2403.05791, Sec. III, Table I, Fig. 3, Table II).
 
-Two trajectories as in the paper: 3x3x3 m with 8 events (cube corners) and 2x6x2 m with 10 events. True mics
+Two trajectories as in the paper: 3x3x3 m with 8 events (cube corners) and 2x6x2 m with 10 events
+(``--trajectories 1,2,3`` adds the authors' code's third one, 4x4x2 m with 14 events, which their published
+medians pool). True mics
 uniform in the trajectory box, ``|tau_i - tau_0| <= 0.1 s``, ``|delta_i| <= 1e-4``, intervals uniform in [0, 10] s,
 c = 340 m/s, sigma_odo = 0.01 m. Runs per trajectory: 200 (``--quick``: 20); both trajectories pooled.
 
@@ -48,15 +50,21 @@ TRAJECTORIES = {
                        float), np.array([3.0, 3.0, 3.0])),
     2: (np.array([[0, 0, 0], [2, 0, 0], [2, 2, 0], [2, 4, 0], [2, 6, 0], [2, 6, 2], [2, 4, 2], [2, 2, 2], [2, 0, 2],
                   [0, 0, 2]], float), np.array([2.0, 6.0, 2.0])),
+    # not in the paper's text, but pooled with 1 and 2 by the authors' sim_main.m / DataAnalysis.m
+    3: (2.0 * np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [1, 2, 0], [0, 2, 0], [-1, 2, 0], [-1, 1, 0], [-1, 0, 0],
+                        [-1, 0, 1], [-1, 1, 1], [-1, 2, 1], [0, 2, 1], [1, 2, 1], [1, 1, 1]], float),
+        np.array([4.0, 4.0, 2.0])),
 }
-SIGMA_INIT_M = {1: (0.0, 1.0, 2.0, 3.0), 2: (0.0, 2.0, 4.0, 6.0)}
+BOX_LOW_M = {1: (0.0, 0.0, 0.0), 2: (0.0, 0.0, 0.0), 3: (-2.0, 0.0, 0.0)}
+SIGMA_INIT_M = {1: (0.0, 1.0, 2.0, 3.0), 2: (0.0, 2.0, 4.0, 6.0), 3: (0.0, 2.0, 4.0, 6.0)}
 
 
 def make_case(traj: int, n_mics: int, sigma_tdoa_s: float, rng: np.random.Generator):
     events, box = TRAJECTORIES[traj]
     offsets = rng.uniform(-0.1, 0.1, n_mics)
     offsets[0] = 0.0
-    truth = ht.Scene(rng.random((n_mics, 3)) * box, events, offsets, rng.uniform(-100.0, 100.0, n_mics))
+    mics = np.asarray(BOX_LOW_M[traj]) + rng.random((n_mics, 3)) * box
+    truth = ht.Scene(mics, events, offsets, rng.uniform(-100.0, 100.0, n_mics))
     problem = ht.simulate_problem(truth, 10.0 * rng.random(len(events) - 1), sigma_tdoa_s=sigma_tdoa_s,
                                   sigma_odo_m=SIGMA_ODO_M, rng=rng, speed_of_sound_m_s=C_M_S)
     return problem, truth
@@ -206,23 +214,26 @@ def main(argv=None) -> int:
     ap.add_argument("--runs", type=int, default=None, help="runs per trajectory (overrides --quick)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--parts", default="A,B,C,D,scale,scipy")
+    ap.add_argument("--trajectories", default="1,2",
+                    help="the paper's two (default); 1,2,3 pools the third one as the authors' code does")
     args = ap.parse_args(argv)
     runs = args.runs if args.runs is not None else (20 if args.quick else 200)
     parts = set(args.parts.split(","))
     args.out.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(args.seed)
-    result: dict = {"runs_per_trajectory": runs}
+    trajs = tuple(int(t) for t in args.trajectories.split(","))
+    result: dict = {"runs_per_trajectory": runs, "trajectories": list(trajs)}
 
     def random_init(traj, problem):
-        box = TRAJECTORIES[traj][1]
-        return ht.random_initial_scene(problem.n_mics, problem.n_events, rng=rng, low_m=(0, 0, 0),
-                                       high_m=tuple(box))
+        lo = np.asarray(BOX_LOW_M[traj])
+        return ht.random_initial_scene(problem.n_mics, problem.n_events, rng=rng, low_m=tuple(lo),
+                                       high_m=tuple(lo + TRAJECTORIES[traj][1]))
 
     if "A" in parts:
         data = {}
         for n in (4, 6, 8, 10):
             rows = {"hybrid": [], "baseline": []}
-            for traj in (1, 2):
+            for traj in trajs:
                 for _ in range(runs):
                     problem, truth = make_case(traj, n, 1e-4, rng)
                     res = run_solves(problem, truth, random_init(traj, problem), rng)
@@ -236,7 +247,7 @@ def main(argv=None) -> int:
         data = {}
         for level in range(4):
             rows = {"hybrid": [], "baseline": []}
-            for traj in (1, 2):
+            for traj in trajs:
                 sig = SIGMA_INIT_M[traj][level]
                 for _ in range(runs):
                     problem, truth = make_case(traj, 6, 1e-4, rng)
@@ -245,7 +256,7 @@ def main(argv=None) -> int:
                     res = run_solves(problem, truth, init, rng)
                     for m in rows:
                         rows[m].append(res[m])
-            data["/".join(f"{SIGMA_INIT_M[t][level]:g}" for t in (1, 2))] = rows
+            data["/".join(f"{SIGMA_INIT_M[t][level]:g}" for t in trajs)] = rows
         result["partB"] = {k: {m: summarise(v[m]) for m in v} for k, v in data.items()}
         boxplot(args.out / "partB.png", "Part B: initial-value noise sigma_init (m), traj 1 / traj 2", list(data),
                 data)
@@ -254,7 +265,7 @@ def main(argv=None) -> int:
         for sig in (5e-5, 1e-4, 5e-4):
             rows = {"hybrid": [], "baseline": []}
             cr = {"hybrid": [], "baseline": []}
-            for traj in (1, 2):
+            for traj in trajs:
                 for _ in range(runs):
                     problem, truth = make_case(traj, 6, sig, rng)
                     if "D" in parts:

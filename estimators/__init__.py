@@ -6,6 +6,11 @@ Imports only numpy, scipy and filterpy. Conventions (units, signs, pair order) a
 from .conventions import SPEED_OF_SOUND_M_S, pair_matrix, pairs, ppm_to_ratio, s_to_samples, samples_to_s
 from .gcc import GccPhat, gcc_phat, gcc_phat_spectra
 from .toa import FixedLagKalmanToa, KalmanToa, PinvToa, SubsetToa
+from .chirps import ChirpTdoas, detect_chirps, extract_tdoas, gcc_phat_delays, linear_chirp, matched_filter
+from .hybrid_tdoa import (CalibrationResult, CrlbResult, HybridTdoaProblem, MicFrameScene, NoiseLevels, Scene,
+                          crlb, estimate_noise_levels, mic_frame_error, random_initial_scene, simulate_problem,
+                          to_mic_frame)
+from .hybrid_tdoa import solve as solve_hybrid_tdoa
 
 __all__ = [
     "SPEED_OF_SOUND_M_S",
@@ -21,4 +26,23 @@ __all__ = [
     "PinvToa",
     "KalmanToa",
     "FixedLagKalmanToa",
+    "ChirpTdoas",
+    "detect_chirps",
+    "extract_tdoas",
+    "gcc_phat_delays",
+    "linear_chirp",
+    "matched_filter",
+    "CalibrationResult",
+    "CrlbResult",
+    "HybridTdoaProblem",
+    "MicFrameScene",
+    "NoiseLevels",
+    "Scene",
+    "crlb",
+    "estimate_noise_levels",
+    "mic_frame_error",
+    "random_initial_scene",
+    "simulate_problem",
+    "to_mic_frame",
+    "solve_hybrid_tdoa",
 ]

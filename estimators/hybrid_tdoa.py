@@ -257,8 +257,8 @@ class CalibrationResult:
     """
 
     scene: Scene
-    method: str
-    verdict: str
+    method: Method
+    verdict: Verdict
     cost: float
     chi2_per_dof: float
     residual_scale: float
@@ -1152,7 +1152,11 @@ def solve(problem: HybridTdoaProblem, *, method: Method = "hybrid", init: Scene 
         with random mics around the odometry (baseline)."""
         if k == 0 and init is not None:
             if init.mic_positions_m.shape != (lay.n, 3) or init.event_positions_m.shape != (lay.k, 3):
-                raise ValueError("init shapes do not match the problem")
+                raise ValueError(f"init has {init.mic_positions_m.shape[0]} mics and "
+                                 f"{init.event_positions_m.shape[0]} events, the problem {lay.n} and {lay.k}")
+            if not all(np.all(np.isfinite(a)) for a in (init.mic_positions_m, init.event_positions_m,
+                                                        init.offsets_s, init.drifts_ppm)):
+                raise ValueError("init must be finite (metres, seconds, ppm)")
             return _apply_gauge(lay, lay.pack(init.mic_positions_m @ rot.T, init.offsets_s,
                                               init.drifts_ppm * _PPM, init.event_positions_m @ rot.T))
         p = _smart_init(lay, odo_gauge, method, rng, n_grid)
