@@ -32,9 +32,9 @@ each device delayed by a fixed fractional delay (circularly, so the signal loops
 independent sensor noise 25 dB down. The Kalman filter must be updating: the fraction of hops with an
 accepted measurement update is reported per configuration.
 
-Run ``python benchmarks/throughput.py`` (``--quick`` for a smoke run, ``--profile`` to print the
-cProfile top entries of the path and the engine to stderr). The last line of stdout is one JSON
-object.
+Run ``python benchmarks/throughput.py`` (``--quick`` for a smoke run; ``--profile`` adds a clock
+split of the engine's parts to the table and JSON and prints the cProfile top entries of the path
+and the engine to stderr, after all timings). The last line of stdout is one JSON object.
 """
 from __future__ import annotations
 
@@ -82,6 +82,7 @@ class PathConfig:
     sample_rate_hz: float
     frame_samples: int
     hop_samples: int
+    max_tdoa_s: float | None = None  # None: the engine default (EngineConfig.max_tdoa_s)
 
     @property
     def key(self) -> str:
@@ -98,6 +99,10 @@ PATH_CONFIGS = (
     PathConfig(8, 16_000.0, 512, 128),
     PathConfig(16, 16_000.0, 512, 128),
 )
+# Overhead probe: the same chain on 64-sample frames, where every FFT is nearly free, so its time is
+# the per-hop cost that does not scale with the frame (Python and numpy call overhead). Reported,
+# not part of the ratio_to_fft_floor maximum.
+OVERHEAD_PROBE = PathConfig(8, 16_000.0, 64, 16, max_tdoa_s=1e-3)
 
 
 # ---------------------------------------------------------------------------------------- input
@@ -150,12 +155,13 @@ def scene(n_devices: int, sample_rate_hz: float, duration_s: float, seed: int) -
 
 
 # ---------------------------------------------------------------------------------------- stages
-class Path:
+class HopPath:
     """The per-hop chain of Pipeline.process_block, without recording and re-centring."""
 
     def __init__(self, cfg: PathConfig) -> None:
+        extra = {} if cfg.max_tdoa_s is None else {"max_tdoa_s": cfg.max_tdoa_s}
         engine = EngineConfig(working_rate_hz=cfg.sample_rate_hz, frame_samples=cfg.frame_samples,
-                              hop_samples=cfg.hop_samples, weighting="adaptive").resolved(cfg.sample_rate_hz)
+                              hop_samples=cfg.hop_samples, weighting="adaptive", **extra).resolved(cfg.sample_rate_hz)
         m, fs = cfg.n_devices, cfg.sample_rate_hz
         self.stft = beamform.StreamingStft(m, frame_samples=cfg.frame_samples, hop_samples=cfg.hop_samples)
         self.gcc = estimators.GccPhat(m, n_fft=cfg.frame_samples, sample_rate_hz=fs, max_tdoa_s=engine.max_tdoa_s)
@@ -176,6 +182,33 @@ class Path:
         fine = self.estimator.update(tdoa_s, confidence)
         out = self.das.process_spectra(spectra, fine, valid=valid)
         self.toa_s = fine
+        return out
+
+    def hop_staged(self, block: np.ndarray, times: dict[str, list[float]]) -> np.ndarray:
+        """:meth:`hop` with a clock between the stages (appends seconds to ``times[stage]``)."""
+        perf = time.perf_counter
+        valid = self.valid
+        t0 = perf()
+        spectra = self.stft.process(block)
+        t1 = perf()
+        tdoa_s, confidence = self.gcc.process(spectra)
+        t2 = perf()
+        confidence = np.where(valid[self._pi] & valid[self._pj], confidence, 0.0)
+        fine = self.estimator.update(tdoa_s, confidence)
+        t3 = perf()
+        istft = getattr(self.das, "_istft", None)  # private: the split is diagnostic only
+        if istft is not None:
+            Y = self.das.beamform_spectra(spectra, fine, valid)
+            t4 = perf()
+            out = istft.process(Y)
+        else:
+            out = self.das.process_spectra(spectra, fine, valid=valid)
+            t4 = perf()
+        t5 = perf()
+        self.toa_s = fine
+        for name, a, b in (("stft", t0, t1), ("gcc", t1, t2), ("kalman", t2, t3), ("das_beamform", t3, t4),
+                           ("das_synthesis", t4, t5)):
+            times[name].append(b - a)
         return out
 
     def count(self) -> None:
@@ -200,7 +233,7 @@ class Floor:
                       + 1j * rng.standard_normal((m * (m - 1) // 2, n_bins))).astype(np.complex64)
         self.out = self.cross[0].copy()
 
-    def hop(self, frame_time_major: np.ndarray) -> None:
+    def load(self, frame_time_major: np.ndarray) -> None:
         self.frame[...] = frame_time_major.T  # loading the data is outside the timed call
         return None
 
@@ -212,18 +245,21 @@ class Floor:
 
 
 # ---------------------------------------------------------------------------------------- GCC
-def pra_gcc(frame: np.ndarray, pair_i: np.ndarray, pair_j: np.ndarray, sample_rate_hz: float) -> np.ndarray:
-    import pyroomacoustics as pra
+def pra_gcc(tdoa, frame: np.ndarray, pairs_ij: list[tuple[int, int]], sample_rate_hz: float) -> np.ndarray:
+    """``tdoa_s[p] = toa_i - toa_j`` by ``pyroomacoustics.sync.tdoa`` called once per pair.
 
-    out = np.empty(len(pair_i))
-    for p, (i, j) in enumerate(zip(pair_i, pair_j)):
-        # fs in Hz: seconds out (fs=1 would give samples)
-        out[p] = pra.sync.tdoa(frame[:, i], frame[:, j], interp=1, phat=True, fs=sample_rate_hz)
+    ``tdoa(signal, reference, interp=1, phat=False, fs=1)``: zero-padded linear correlation of
+    ``N1 + N2 - 1`` points (numpy.fft, float64), peak over all lags, integer lags for ``interp=1``,
+    in samples for ``fs=1`` and in seconds for ``fs=sample_rate_hz``; positive when ``signal`` lags.
+    """
+    out = np.empty(len(pairs_ij))
+    for p, (i, j) in enumerate(pairs_ij):
+        out[p] = tdoa(frame[:, i], frame[:, j], interp=1, phat=True, fs=sample_rate_hz)
     return out
 
 
 def bench_gcc(repeats: int, frames_per_round: int) -> dict:
-    import pyroomacoustics as pra  # noqa: F401  (import cost outside the timing)
+    from pyroomacoustics.sync import tdoa as pra_tdoa
 
     m, n, fs = GCC_N_CHANNELS, GCC_FRAME_SAMPLES, GCC_RATE_HZ
     audio, toa = scene(m, fs, (GCC_N_FRAMES + 1) * n / fs, SEED + 1)
@@ -241,8 +277,10 @@ def bench_gcc(repeats: int, frames_per_round: int) -> dict:
     def ours_spectra(k):
         return gcc.process(spectra[k])
 
+    pairs_ij = [(int(i), int(j)) for i, j in zip(pi, pj)]
+
     def pra_loop(k):
-        return pra_gcc(frames[k], pi, pj, fs)
+        return pra_gcc(pra_tdoa, frames[k], pairs_ij, fs)
 
     # accuracy (not timed): frames whose PHAT peak is confident
     err_ours, err_pra = [], []
@@ -286,38 +324,43 @@ def bench_gcc(repeats: int, frames_per_round: int) -> dict:
 
 
 # ---------------------------------------------------------------------------------------- path
+STAGES = ("stft", "gcc", "kalman", "das_beamform", "das_synthesis")
+
+
 def bench_paths(repeats: int, hops_per_round: int, audio_s: float) -> tuple[dict, list[dict]]:
     """Path and floor per config, interleaved: every round runs each config's floor and path for
-    ``hops_per_round`` hops, in an order that alternates between rounds."""
+    ``hops_per_round`` hops, in an order that alternates between rounds. Then a shorter pass with a
+    clock between the stages (per-stage medians; their sum is close to, not equal to, the path)."""
+    configs = PATH_CONFIGS + (OVERHEAD_PROBE,)
     state = {}
-    for k, cfg in enumerate(PATH_CONFIGS):
+    for k, cfg in enumerate(configs):
         audio, toa = scene(cfg.n_devices, cfg.sample_rate_hz, audio_s, SEED + 10 + k)
         n_hops = len(audio) // cfg.hop_samples
         audio = audio[: n_hops * cfg.hop_samples]
-        path, floor = Path(cfg), Floor(cfg)
+        path, floor = HopPath(cfg), Floor(cfg)
         # warm-up: 2 s of audio through the path (the Kalman initialises, the beamformer's start-up
         # ALS iterations end after 1 s), a few floors
         pos = 0
         for _ in range(int(np.ceil(2.0 * cfg.sample_rate_hz / cfg.hop_samples))):
             path.hop(audio[pos * cfg.hop_samples:(pos + 1) * cfg.hop_samples])
             pos = (pos + 1) % n_hops
-        floor.hop(audio[: cfg.frame_samples])
+        floor.load(audio[: cfg.frame_samples])
         for _ in range(20):
             floor.ffts()
         path.n_hops = path.n_updates = path.n_gated = 0
         state[cfg] = dict(audio=audio, toa=toa, n_hops=n_hops, pos=pos, path=path, floor=floor,
-                          t_path=[], t_floor=[], toa_err=[])
+                          t_path=[], t_floor=[], toa_err=[], stages={name: [] for name in STAGES})
 
     perf = time.perf_counter
     for r in range(repeats):
-        for cfg in (PATH_CONFIGS if r % 2 == 0 else PATH_CONFIGS[::-1]):
+        for cfg in (configs if r % 2 == 0 else configs[::-1]):
             s = state[cfg]
             path, floor, audio, hop, n_hops = s["path"], s["floor"], s["audio"], cfg.hop_samples, s["n_hops"]
             runs = ("floor", "path") if r % 4 < 2 else ("path", "floor")
             for what in runs:
                 if what == "floor":
                     start = (s["pos"] * hop) % (len(audio) - cfg.frame_samples)
-                    floor.hop(audio[start:start + cfg.frame_samples])
+                    floor.load(audio[start:start + cfg.frame_samples])
                     for _ in range(hops_per_round):
                         t0 = perf()
                         floor.ffts()
@@ -334,9 +377,17 @@ def bench_paths(repeats: int, hops_per_round: int, audio_s: float) -> tuple[dict
                             s["toa_err"].append(np.abs(path.toa_s - s["toa"]).max())
                         pos = (pos + 1) % n_hops
                     s["pos"] = pos
+    for r in range(max(1, repeats // 2)):  # stage split, also interleaved
+        for cfg in (configs if r % 2 == 0 else configs[::-1]):
+            s = state[cfg]
+            path, audio, hop, pos = s["path"], s["audio"], cfg.hop_samples, s["pos"]
+            for _ in range(hops_per_round):
+                path.hop_staged(audio[pos * hop:(pos + 1) * hop], s["stages"])
+                pos = (pos + 1) % s["n_hops"]
+            s["pos"] = pos
 
     out, rows = {}, []
-    for cfg in PATH_CONFIGS:
+    for cfg in configs:
         s = state[cfg]
         key = cfg.key
         path_ms = 1e3 * float(np.median(s["t_path"]))
@@ -351,6 +402,8 @@ def bench_paths(repeats: int, hops_per_round: int, audio_s: float) -> tuple[dict
             "update_fraction": p.n_updates / max(p.n_hops, 1),
             "gated_fraction": p.n_gated / max(p.n_hops, 1),
             "toa_err_median_samples": float(np.median(s["toa_err"])) * cfg.sample_rate_hz if s["toa_err"] else None,
+            "stages_ms": {name: 1e3 * float(np.median(v)) for name, v in s["stages"].items() if v},
+            "probe": cfg is OVERHEAD_PROBE,
         }
         rows.append(row)
         out[f"path_ms_{key}"] = path_ms
@@ -359,7 +412,8 @@ def bench_paths(repeats: int, hops_per_round: int, audio_s: float) -> tuple[dict
         out[f"ratio_to_fft_floor_{key}"] = row["ratio"]
         out[f"kalman_update_fraction_{key}"] = row["update_fraction"]
         out[f"toa_err_median_samples_{key}"] = row["toa_err_median_samples"]
-    out["ratio_to_fft_floor"] = max(r["ratio"] for r in rows)
+        out[f"stages_ms_{key}"] = row["stages_ms"]
+    out["ratio_to_fft_floor"] = max(r["ratio"] for r in rows if not r["probe"])
     return out, rows
 
 
@@ -373,7 +427,7 @@ def bench_cpu_path(repeats: int, audio_s: float) -> dict:
     blocks = [audio[k * hop:(k + 1) * hop] for k in range(n_hops)]
     proc, thread, updates = [], [], []
     for r in range(repeats + 1):  # run 0 is the warm-up
-        path = Path(cfg)
+        path = HopPath(cfg)
         p0, t0 = time.process_time(), time.thread_time()
         for b in blocks:
             path.hop(b)
@@ -408,8 +462,10 @@ def bench_engine(repeats: int, audio_s: float, profile: bool) -> dict:
 
     logging.getLogger().setLevel(logging.ERROR)
     m, fs, frame, hop = CPU_CONFIG
-    config = EngineConfig(working_rate_hz=fs, frame_samples=frame, hop_samples=hop, plots=False, progress=False)
-    fractions, wall, block_ms = [], [], []
+    # adaptive weighting as in the bare path (the engine's default may differ)
+    config = EngineConfig(working_rate_hz=fs, frame_samples=frame, hop_samples=hop, weighting="adaptive",
+                          plots=False, progress=False)
+    fractions, wall, block_ms, in_blocks = [], [], [], []
     with tempfile.TemporaryDirectory(prefix="throughput_") as tmp:
         tmp = pathlib.Path(tmp)
         wavs = write_wavs(tmp, m, fs, audio_s)
@@ -421,21 +477,97 @@ def bench_engine(repeats: int, audio_s: float, profile: bool) -> dict:
                 fractions.append(rep["timing"]["cpu_s"] / audio)
                 wall.append(rep["timing"]["wall_s"] / audio)
                 block_ms.append(rep["timing"]["block_ms_median"])
+                # Pipeline.process_block wall time (stages + its book-keeping, not the sinks)
+                in_blocks.append(1e-3 * float(np.sum(outcome.pipeline.state.block_ms)) / audio)
         n_gated = rep["stream"]["n_gated"]
         n_blocks = rep["stream"]["n_blocks"]
+        split = None
         if profile:
+            split = engine_split(wavs, tmp / "split", config)
             prof = cProfile.Profile()
             prof.enable()
             run_replay(wavs, tmp / "profiled", config=config)
             prof.disable()
             print_profile(prof, "engine: run_replay, 8 devices, 16 kHz, frame 512, hop 128")
-    return {
+    result = {
         "cpu_fraction_8dev_16k_hop128_engine": float(np.median(fractions)),
         "engine_wall_fraction_8dev_16k_hop128": float(np.median(wall)),
+        "engine_process_block_fraction": float(np.median(in_blocks)),
         "engine_block_ms_median": float(np.median(block_ms)),
         "engine_gated_fraction": n_gated / max(n_blocks, 1),
         "engine_audio_s": audio,
     }
+    if split is not None:
+        result["engine_split_fraction"] = split
+    return result
+
+
+def engine_split(wavs: list[pathlib.Path], out_dir: pathlib.Path, config: EngineConfig) -> dict[str, float]:
+    """One run_replay with a clock around the engine's parts (class attributes wrapped for the run
+    and restored): seconds per second of audio. ``process_block`` includes the stages listed under
+    it and the sinks (called from it); ``aligner.push`` excludes ``process_block``."""
+    import functools
+
+    import stream.align
+    import stream.condition
+    import stream.pipeline
+    import stream.replay
+    import stream.sinks
+    from stream.run import run_replay
+
+    acc: dict[str, float] = {}
+    originals = []
+
+    def wrap(owner, name: str, label: str, generator: bool = False) -> None:
+        f = getattr(owner, name)
+        originals.append((owner, name, f))
+        if generator:
+            def g(self):
+                it = f(self)
+                while True:
+                    t0 = time.perf_counter()
+                    try:
+                        item = next(it)
+                    except StopIteration:
+                        acc[label] = acc.get(label, 0.0) + time.perf_counter() - t0
+                        return
+                    acc[label] = acc.get(label, 0.0) + time.perf_counter() - t0
+                    yield item
+        else:
+            @functools.wraps(f)
+            def g(*a, **k):
+                t0 = time.perf_counter()
+                try:
+                    return f(*a, **k)
+                finally:
+                    acc[label] = acc.get(label, 0.0) + time.perf_counter() - t0
+        setattr(owner, name, g)
+
+    wrap(stream.replay.ReplaySource, "__iter__", "replay_source_read", generator=True)
+    wrap(stream.condition.DeviceConditioner, "process", "conditioner")
+    wrap(stream.align.Aligner, "push", "aligner_push")
+    wrap(stream.align.Aligner, "_emit", "aligner_push.emit_blocks")
+    wrap(stream.pipeline.Pipeline, "process_block", "process_block")
+    wrap(beamform.StreamingStft, "process", "process_block.stft")
+    wrap(estimators.GccPhat, "process", "process_block.gcc")
+    wrap(type(make_estimator(EngineConfig().resolved(16_000.0), 8)), "update", "process_block.kalman")
+    wrap(beamform.DelayAndSum, "process_spectra", "process_block.das")
+    wrap(stream.pipeline.Pipeline, "_pair_valid", "process_block.pair_valid")
+    wrap(stream.pipeline.Pipeline, "_recentre", "process_block.recentre")
+    wrap(stream.pipeline.Pipeline, "_record", "process_block.record")
+    wrap(stream.sinks.WavSink, "write", "process_block.sinks")
+    wrap(stream.sinks.ToaCsvSink, "write", "process_block.sinks")
+    try:
+        p0 = time.process_time()
+        outcome = run_replay(wavs, out_dir, config=config)
+        cpu_s = time.process_time() - p0
+    finally:
+        for owner, name, f in reversed(originals):
+            setattr(owner, name, f)
+    audio = outcome.report["stream"]["audio_s"]
+    split = {k: v / audio for k, v in sorted(acc.items())}
+    split["total_cpu"] = cpu_s / audio
+    return split
 
 
 def print_profile(prof: cProfile.Profile, title: str, n: int = 25) -> None:
@@ -450,7 +582,7 @@ def profile_path(audio_s: float) -> None:
         audio, _ = scene(cfg.n_devices, cfg.sample_rate_hz, audio_s, SEED + 300)
         hop = cfg.hop_samples
         blocks = [audio[k * hop:(k + 1) * hop] for k in range(len(audio) // hop)]
-        path = Path(cfg)
+        path = HopPath(cfg)
         for b in blocks[: len(blocks) // 4]:
             path.hop(b)
         prof = cProfile.Profile()
@@ -479,13 +611,13 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--repeats", type=int, default=None,
-                    help="interleaved rounds for GCC and path timing (default 20, quick 3); the CPU "
-                         "and engine runs use max(1, repeats // 4) (default 5, quick 1)")
+                    help="interleaved rounds for GCC and path timing (default 40, quick 3); the CPU "
+                         "and engine runs use max(1, repeats // 4) (default 10, quick 1)")
     ap.add_argument("--quick", action="store_true", help="smoke run: few rounds, 3 s of audio for the CPU runs")
     ap.add_argument("--cpu-audio-s", type=float, default=None, help="audio per CPU run in seconds (default 10)")
     ap.add_argument("--profile", action="store_true", help="print cProfile top entries of the path and engine to stderr")
     args = ap.parse_args(argv)
-    repeats = args.repeats or (3 if args.quick else 20)
+    repeats = args.repeats or (3 if args.quick else 40)
     if repeats < 1:
         ap.error(f"{repeats=} must be >= 1")
     cpu_repeats = max(1, repeats // 4)
@@ -526,9 +658,17 @@ def main(argv: list[str] | None = None) -> int:
         print(f"  {r['config']:<16} {r['hop_ms']:7.2f} {r['path_ms']:8.3f} {r['path_p90_ms']:7.3f} "
               f"{r['floor_ms']:9.3f} {r['ratio']:6.2f} {r['rtf']:7.4f} {r['update_fraction']:8.1%} "
               f"{r['toa_err_median_samples']:8.3f} {r['n_hops']:6d}")
-    print(f"  max ratio to FFT floor: {paths['ratio_to_fft_floor']:.2f}   (target <= 2)")
+    print(f"  max ratio to FFT floor: {paths['ratio_to_fft_floor']:.2f}   (target <= 2; "
+          f"{OVERHEAD_PROBE.key} is the overhead probe, not in the max)")
     print("  (TOA err: median over hops of max_i |toa_i - truth_i| in samples; updated: hops with an accepted "
           "Kalman update)")
+    print()
+    print("Per-stage median ms (separate pass with a clock between stages)")
+    print(f"  {'config':<16} " + " ".join(f"{name:>13}" for name in STAGES) + f" {'sum':>7} {'floor':>7}")
+    for r in rows:
+        st = r["stages_ms"]
+        print(f"  {r['config']:<16} " + " ".join(f"{st.get(name, float('nan')):13.3f}" for name in STAGES)
+              + f" {sum(st.values()):7.3f} {r['floor_ms']:7.3f}")
     print()
     print(f"CPU share of one core, 8 devices, 16 kHz, frame 512 / hop 128, {cpu['cpu_runs_audio_s']:.1f} s of audio, "
           f"median of {cpu_repeats} runs")
@@ -537,6 +677,11 @@ def main(argv: list[str] | None = None) -> int:
     print(f"  whole engine (run_replay)      {engine['cpu_fraction_8dev_16k_hop128_engine']:7.2%}"
           f"   (wall {engine['engine_wall_fraction_8dev_16k_hop128']:.2%}, "
           f"gated {engine['engine_gated_fraction']:.1%} of blocks)")
+    print(f"    of which Pipeline.process_block {engine['engine_process_block_fraction']:7.2%}")
+    if "engine_split_fraction" in engine:
+        print("  engine split (--profile; wall s per s of audio):")
+        for name, v in engine["engine_split_fraction"].items():
+            print(f"    {name:<34} {v:7.2%}")
     print()
     m = result["machine"]
     print(f"machine: nproc {m['nproc']}, load {m['loadavg_start']} -> {m['loadavg_end']}, "

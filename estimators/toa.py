@@ -240,6 +240,10 @@ class KalmanToa(_PairModel):
         (Re-)initialise only from a frame whose pseudo-inverse fit leaves an RMS TDOA residual
         below this (seconds): a self-consistent frame. None (default) initialises from the first
         frame that makes every TOA observable, as the paper does.
+    initial_toa_std_s : float or None
+        A weak prior ``toa ~ N(0, initial_toa_std_s**2)`` at (re-)initialisation, so that the
+        filter starts as soon as three pairs are usable, even while some devices have not started
+        (their TOA starts at 0 with this spread). None (default): wait until every TOA is observable.
 
     Attributes
     ----------
@@ -282,8 +286,12 @@ class KalmanToa(_PairModel):
         confidence_weighted: bool = False,
         pair_gate_sigma: float | None = None,
         init_max_residual_s: float | None = None,
+        initial_toa_std_s: float | None = None,
     ) -> None:
         super().__init__(n_mics, min_confidence)
+        if initial_toa_std_s is not None and not initial_toa_std_s > 0:
+            raise ValueError(f"{initial_toa_std_s=} must be None or > 0 seconds")
+        self.initial_toa_std_s = initial_toa_std_s
         if init_max_residual_s is not None and not init_max_residual_s > 0:
             raise ValueError(f"{init_max_residual_s=} must be None or > 0 seconds")
         self.init_max_residual_s = init_max_residual_s
@@ -485,6 +493,12 @@ class KalmanToa(_PairModel):
     def _initialise(self, tdoa: np.ndarray, used: np.ndarray | None, var: np.ndarray | None) -> bool:
         """State ``[WLS estimate (eq. 12), 0]``; ``False`` if the used pairs leave a TOA unobservable."""
         w, B = self._information(used, var)
+        if self.initial_toa_std_s is not None:
+            # weak prior toa ~ N(0, initial_toa_std_s^2): devices without a usable pair yet (not
+            # started, silent) start at 0 with a wide spread instead of blocking the start
+            if int(np.count_nonzero(w)) < min(3, self.n_pairs):
+                return False
+            B = B + self._eye_m / self.initial_toa_std_s**2
         try:
             cov_pos = scipy.linalg.inv(B, check_finite=False)
             if not np.all(np.isfinite(cov_pos)) or np.linalg.cond(B) > 1e12:

@@ -144,8 +144,9 @@ def evaluate_run(pipeline: Pipeline, fixture: Fixture, device_index: list[int]) 
             scores["best_single_device"] = {"device": int(best), **enhancement_scores(x[:, int(best)], clean,
                                                                                       sample_rate_hz=fs)}
             fine_est = toa_s - offsets / fs if offsets is not None else toa_s
-            scores["estimated_toa_equal_weights"] = enhancement_scores(
-                beamform_offline(x, fine_est, config=cfg, weighting="equal", valid=valid), clean, sample_rate_hz=fs,
+            other = "adaptive" if cfg.weighting == "equal" else "equal"
+            scores[f"estimated_toa_{other}_weights"] = enhancement_scores(
+                beamform_offline(x, fine_est, config=cfg, weighting=other, valid=valid), clean, sample_rate_hz=fs,
                 sar=False)
             if fixture.truth_toa is not None and offsets is not None:
                 centre = (np.arange(len(x) // cfg.hop_samples) * cfg.hop_samples + cfg.hop_samples

@@ -19,6 +19,8 @@ from pathlib import Path
 import numpy as np
 import soundfile as sf
 
+from .errors import InputFileError
+
 try:
     import tomllib
 except ModuleNotFoundError:  # Python 3.10
@@ -32,7 +34,7 @@ _DEVICE_KEYS = ("name", "file", "sample_rate_hz", "start_offset_s", "drift_ppm",
 _TRUTH_KEYS = ("clean", "toa", "sync", "clean_sync", "sync_toa", "source_path")
 
 
-class FixtureError(ValueError):
+class FixtureError(InputFileError):
     """A fixture folder is missing, incomplete or malformed."""
 
 

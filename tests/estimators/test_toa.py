@@ -375,3 +375,19 @@ def test_shift_moves_the_track_without_gating():
         assert not est.gated
         if cls is KalmanToa:
             np.testing.assert_allclose(out, toa + jump, atol=2e-5)
+
+
+def test_weak_prior_starts_before_every_device_is_heard():
+    """With initial_toa_std_s the filter starts on the devices it hears; a silent one starts at 0."""
+    from estimators import KalmanToa, pair_matrix, pairs
+
+    H = pair_matrix(4)
+    toa = np.array([0.0, 0.001, -0.002, 0.003])
+    conf = np.where((pairs(4) == 3).any(axis=1), 0.0, 0.9)      # device 3 not heard yet
+    waiting = KalmanToa(4, frame_period_s=0.02)
+    started = KalmanToa(4, frame_period_s=0.02, initial_toa_std_s=0.005)
+    waiting.update(H @ toa, conf)
+    out = started.update(H @ toa, conf)
+    assert not waiting.initialised and started.initialised
+    np.testing.assert_allclose(out[:3], toa[:3], atol=1e-6)
+    assert out[3] == pytest.approx(0.0, abs=1e-6)

@@ -171,3 +171,19 @@ def test_cli_replay_with_config_file(make_devices, tmp_path, capsys):
     assert report["settings"]["estimator"] == "kalman"     # the CLI wins over the config file
     assert report["settings"]["frame_samples"] == 512
     assert "adhoc-array replay: ok" in capsys.readouterr().out
+
+
+def test_broken_fixture_is_one_sentence(tmp_path, capsys):
+    (tmp_path / "fx").mkdir()
+    (tmp_path / "fx" / "fixture.toml").write_text("name = 'x'\n[[device]]\nname='a'\n")
+    assert main(["replay", str(tmp_path / "fx"), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("adhoc-array: ") and err.count("\n") == 1
+
+
+def test_speed_paces_the_replay(make_devices, tmp_path):
+    import time
+    paths, _, _ = make_devices([0.0, 0.001], duration_s=2.0)
+    t0 = time.monotonic()
+    run_replay(paths, tmp_path / "o", config=_cfg(speed=4.0))
+    assert time.monotonic() - t0 >= 2.0 / 4.0 * 0.9
