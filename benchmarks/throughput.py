@@ -234,8 +234,8 @@ class Floor:
         self.out = self.cross[0].copy()
 
     def load(self, frame_time_major: np.ndarray) -> None:
-        self.frame[...] = frame_time_major.T  # loading the data is outside the timed call
-        return None
+        """Copy a frame in (outside the timed call)."""
+        self.frame[...] = frame_time_major.T
 
     def ffts(self) -> None:
         n = self.n

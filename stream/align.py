@@ -123,6 +123,36 @@ def refine_offset(x_ref: np.ndarray, x: np.ndarray, *, coarse_samples: int, sear
     return coarse_samples + int(lags[int(np.argmax(vals))])
 
 
+class _SampleBuffer:
+    """Growable float32 buffer: amortised O(1) appends, occasional compaction of the front."""
+
+    def __init__(self) -> None:
+        self._data = np.zeros(4096, np.float32)
+        self._n = 0
+
+    @property
+    def data(self) -> np.ndarray:
+        """View of the samples held (valid until the next append)."""
+        return self._data[: self._n]
+
+    def __len__(self) -> int:
+        return self._n
+
+    def append(self, x: np.ndarray) -> None:
+        need = self._n + len(x)
+        if need > len(self._data):
+            grown = np.zeros(max(need, 2 * len(self._data)), np.float32)
+            grown[: self._n] = self._data[: self._n]
+            self._data = grown
+        self._data[self._n:need] = x
+        self._n = need
+
+    def drop_front(self, n: int) -> None:
+        keep = self._n - n
+        self._data[:keep] = self._data[n:self._n]
+        self._n = keep
+
+
 @dataclass
 class AlignmentEvent:
     """A change of a device's coarse offset while streaming."""
@@ -175,7 +205,7 @@ class Aligner:
         self.min_quality = float(min_quality)
         self.recheck_blocks = None if not recheck_s else max(1, int(recheck_s * sample_rate_hz / hop_samples))
         self.recheck_tolerance_samples = int(recheck_tolerance_s * sample_rate_hz)
-        self._bufs = [np.zeros(0, np.float32) for _ in range(n_devices)]
+        self._bufs = [_SampleBuffer() for _ in range(n_devices)]
         self._buf_start = [0] * n_devices     # device sample index of _bufs[d][0]
         self._received = [0] * n_devices
         self._ended = [False] * n_devices
@@ -191,7 +221,7 @@ class Aligner:
     def push(self, device_id: int, samples: np.ndarray, flags: FrameFlag = FrameFlag.NONE) -> list[Block]:
         """Add working-rate samples of one device; return the blocks that became complete."""
         if len(samples):
-            self._bufs[device_id] = np.concatenate([self._bufs[device_id], samples.astype(np.float32)])
+            self._bufs[device_id].append(samples)
             self._received[device_id] += len(samples)
         if flags & FrameFlag.LAST:
             self._ended[device_id] = True
@@ -204,9 +234,9 @@ class Aligner:
 
     # alignment -------------------------------------------------------------------------------
     def _initial_alignment(self) -> None:
-        ref = self._bufs[0][: self.window_samples]
+        ref = self._bufs[0].data[: self.window_samples].copy()
         for d in range(1, self.n_devices):
-            x = self._bufs[d][: self.window_samples + int(self.max_offset_s * self.sample_rate_hz)]
+            x = self._bufs[d].data[: self.window_samples + int(self.max_offset_s * self.sample_rate_hz)]
             off, q = coarse_offset(ref, x, sample_rate_hz=self.sample_rate_hz, max_offset_s=self.max_offset_s)
             self.offsets_samples[d], self.quality[d] = off, q
             if q < self.min_quality:
@@ -256,7 +286,7 @@ class Aligner:
     def _slice(self, d: int, start: int, stop: int) -> np.ndarray | None:
         """Device samples [start, stop) (zeros outside what was received), None if none is there."""
         b0 = self._buf_start[d]
-        buf = self._bufs[d]
+        buf = self._bufs[d].data
         lo, hi = max(start, b0), min(stop, b0 + len(buf))
         if hi <= lo:
             return None
@@ -312,5 +342,5 @@ class Aligner:
             pos = self.next_block * self.hop_samples + int(self.offsets_samples[d])
             cut = pos - keep - self._buf_start[d]
             if cut > 4 * keep:  # amortise the copy
-                self._bufs[d] = self._bufs[d][cut:]
+                self._bufs[d].drop_front(cut)
                 self._buf_start[d] += cut
