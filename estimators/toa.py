@@ -21,9 +21,11 @@ TDOA is not finite, is excluded. Estimators that weight pairs by confidence say 
 from __future__ import annotations
 
 import collections
+import math
 
 import numpy as np
 import scipy.linalg
+import scipy.linalg.lapack
 import scipy.stats
 from filterpy.common import Q_continuous_white_noise
 from filterpy.kalman import KalmanFilter
@@ -56,27 +58,32 @@ class _PairModel:
         self._H0 = pair_matrix(self.n_mics)[:, 1:]
         self._H0T = np.ascontiguousarray(self._H0.T)
         self._H0_pinv = np.linalg.pinv(self._H0)  # (H0^T H0)^-1 H0^T, shape (M-1, n_pairs)
+        self._zero = np.zeros(1)
 
     def _inputs(self, tdoa_s, confidence) -> tuple[np.ndarray, np.ndarray | None]:
         """Validated ``(tdoa_s, used)``; ``used`` is ``None`` when every pair is usable."""
         tdoa = np.asarray(tdoa_s, dtype=np.float64)
         if tdoa.shape != (self.n_pairs,):
             raise ValueError(f"tdoa_s.shape={tdoa.shape} must be (n_pairs,)=({self.n_pairs},)")
-        used = np.isfinite(tdoa)
+        conf = None
         if confidence is not None:
             conf = np.asarray(confidence, dtype=np.float64)
             if conf.shape != (self.n_pairs,):
                 raise ValueError(f"confidence.shape={conf.shape} must be (n_pairs,)=({self.n_pairs},)")
+        # Fast path, every pair usable: a finite sum means no NaN/inf TDOA (a sum of finite TDOAs
+        # overflows only near 1e308 s, which then takes the exact test below) and a NaN confidence
+        # makes the minimum NaN, which compares False. Two reductions instead of four numpy calls.
+        if math.isfinite(np.add.reduce(tdoa)) and (conf is None or np.minimum.reduce(conf) > self.min_confidence):
+            return tdoa, None
+        used = np.isfinite(tdoa)
+        if conf is not None:
             used &= conf > self.min_confidence  # NaN confidence compares False: excluded
         if used.all():
             return tdoa, None
         return np.where(used, tdoa, 0.0), used
 
     def _toa(self, toa0: np.ndarray) -> np.ndarray:
-        toa = np.empty(self.n_mics)
-        toa[0] = 0.0
-        toa[1:] = toa0
-        return toa
+        return np.concatenate((self._zero, toa0))  # [0, toa0], a new array (one call instead of three)
 
     def _wls(self, tdoa: np.ndarray, weights: np.ndarray | None) -> np.ndarray:
         """Weighted least-squares ``toa_0`` (eq. 12 with weights); minimum norm if unobservable."""
@@ -269,7 +276,11 @@ class KalmanToa(_PairModel):
     ``S`` (120 x 120 at 16 microphones) and the gate would need ``S`` once more before deciding;
     since ``H = [H0, 0]`` and ``R`` is diagonal, the same posterior and Mahalanobis distance follow
     from one ``(M-1) x (M-1)`` solve (see :meth:`_measurement_update`). The test suite checks it
-    against ``KalmanFilter.update``.
+    against ``KalmanFilter.update``. The prediction runs the same ``dot`` calls as
+    ``KalmanFilter.predict`` (hence the same values) without its per-call overhead. The filter never
+    modifies its arrays in place (every step binds new ones), so ``x_prior``/``x_post`` and
+    ``P_prior``/``P_post`` of the filterpy object share them with ``x`` and ``P`` instead of
+    copying.
     """
 
     def __init__(
@@ -338,6 +349,9 @@ class KalmanToa(_PairModel):
                 [[np.inf], scipy.stats.chi2.ppf(gate_probability, np.arange(1, self.n_pairs + 1))]
             )
         self._eye_m = np.eye(m)
+        self._FT = self._F.T
+        self._rhs = np.empty((m, m + 1))  # right-hand sides [B, b] of the measurement update
+        self._rhs_B: np.ndarray | None = None  # the B held in self._rhs[:, :m] (only ever _B_all)
         self._kf = KalmanFilter(dim_x=2 * m, dim_z=self.n_pairs)
         self._kf.F = self._F
         self._kf.Q = self._Q
@@ -443,9 +457,9 @@ class KalmanToa(_PairModel):
                 self.reinitialised = True
             return
         kf = self._kf
-        kf.predict()  # eq. (13): x = F x, P = F P F^T + Q
+        self._predict()
         if n_used == 0:
-            kf.x_post, kf.P_post = kf.x.copy(), kf.P.copy()
+            kf.x_post, kf.P_post = kf.x, kf.P
             return
         if self.pair_gate_sigma is not None:
             used, var, n_used = self._pair_gate(tdoa, used, var)
@@ -455,11 +469,24 @@ class KalmanToa(_PairModel):
         self.gated = True
         self.n_gated += 1
         self._consecutive_gated += 1
-        kf.x_post, kf.P_post = kf.x.copy(), kf.P.copy()
+        kf.x_post, kf.P_post = kf.x, kf.P
         if self.reinit_after_n_gated is not None and self._consecutive_gated >= self.reinit_after_n_gated:
             if self._initialise(tdoa, used, var):
                 self.reinitialised = True
                 self.n_reinit += 1
+
+    def _predict(self) -> None:
+        """eq. (13): ``x = F x``, ``P = F P F^T + Q``.
+
+        The arithmetic of ``filterpy.kalman.KalmanFilter.predict`` (same ``np.dot`` calls, so
+        bit-identical results) without its argument handling and its two copies of the prior:
+        2.9 instead of 3.9 us at 8 microphones.
+        """
+        kf = self._kf
+        F = self._F
+        kf.x = np.dot(F, kf.x)
+        kf.P = np.dot(np.dot(F, kf.P), self._FT) + self._Q
+        kf.x_prior, kf.P_prior = kf.x, kf.P
 
     def _pair_gate(self, tdoa: np.ndarray, used: np.ndarray | None, var: np.ndarray | None):
         """Per-pair clutter gate: drop pairs whose innovation exceeds ``pair_gate_sigma`` standard
@@ -545,26 +572,44 @@ class KalmanToa(_PairModel):
         kf = self._kf
         m = self._m
         x, P = kf.x, kf.P
-        w, B = self._information(used, var)
         v = tdoa - self._H0 @ x[:m]
-        if used is not None:
-            v[~used] = 0.0
-        wv = w * v
-        b = self._H0T @ wv
-        P_pp = P[:m, :m]
-        T = self._eye_m + B @ P_pp
-        sol = np.linalg.solve(T, np.column_stack([B, b]))
-        G, g = sol[:, :m], sol[:, m]
-        d2 = float(v @ wv - b @ (P_pp @ g))
+        if used is None and var is None:  # every pair at the nominal variance (the usual case)
+            B = self._B_all
+            wv = v * (1.0 / self._tdoa_var)  # the same products as w * v with w = 1 / var
+        else:
+            w, B = self._information(used, var)
+            if used is not None:
+                v[~used] = 0.0
+            wv = w * v
+        # Right-hand sides [B, b] (m, m + 1). dgesv works on its own copy of them, so B stays in
+        # place between frames and only b is written while every pair is used.
+        rhs = self._rhs
+        if B is not self._rhs_B:
+            rhs[:, :m] = B
+            self._rhs_B = B if B is self._B_all else None
+        b = rhs[:, m]
+        np.matmul(self._H0T, wv, out=b)
+        P_c = P[:, :m]
+        T = B @ P[:m, :m]
+        T += self._eye_m
+        # Solve T [G, g] = [B, b] with LAPACK's dgesv directly: np.linalg.solve costs ~8 us of
+        # Python and checks on top of the same factorisation, this ~2 us.
+        _, _, sol, info = scipy.linalg.lapack.dgesv(T, rhs)
+        if info != 0:
+            raise np.linalg.LinAlgError(f"singular T = I + B P in the measurement update (dgesv info {info})")
+        # K_all = P_c [G, g]: its last column is the state step P_c g, whose first m entries are
+        # P_pp g for the gate; one product instead of three.
+        K_all = P_c @ sol
+        step = K_all[:, m]
+        d2 = float(v @ wv - b @ step[:m])
         self.last_mahalanobis_sq = d2
         if d2 > self._gate[n_used]:
             return False
-        P_c = P[:, :m]
-        x_new = x + P_c @ g
-        P_new = P - P_c @ G @ P_c.T
+        x_new = x + step
+        P_new = P - K_all[:, :m] @ P_c.T
         P_new = 0.5 * (P_new + P_new.T)
         kf.x, kf.P = x_new, P_new
-        kf.x_post, kf.P_post = x_new.copy(), P_new.copy()
+        kf.x_post, kf.P_post = x_new, P_new
         return True
 
 

@@ -276,3 +276,103 @@ def test_adaptive_beats_best_device_on_a_reverberant_ad_hoc_scene():
     singles = [_si_sdr_db(x[:, i], refs[:, i]) for i in range(x.shape[1])]
     assert scores["adaptive"] >= max(singles) + 0.3, (scores, singles)
     assert scores["adaptive"] >= scores["equal"] + 0.3, (scores, singles)
+
+
+class _ReferenceDas:
+    """Time-major, float64-steering restatement of DelayAndSum.beamform_spectra (eqs. 7-8 and the
+    adaptive weights) without the channel-major layout, the float32 phase table or the
+    preallocated buffers, to check those against."""
+
+    def __init__(self, das: DelayAndSum) -> None:
+        self.das = das
+        m = das.n_channels
+        self.cov = np.zeros((m, m))
+        self.mass = 0.0
+        self.n_updates = 0
+        self.gain = np.zeros(m)
+
+    def beamform(self, X: np.ndarray, toa: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        das = self.das
+        ok = np.isfinite(X).all(axis=0) & valid & np.isfinite(toa)
+        toa = np.where(np.isfinite(toa), toa, 0.0)
+        X = np.where(ok, X, 0)
+        Z = X * np.exp(1j * das.omega_rad_s[:, None] * toa[None, :])  # complex128
+        m = das.n_channels
+        okf = ok.astype(float)
+        n_ok = int(ok.sum())
+        if das.weighting == "equal":
+            w = okf / n_ok if n_ok else np.zeros(m)
+        else:
+            Zb = Z[das._stats_bins]
+            F = (Zb.conj().T @ Zb).real
+            self.mass = das._forget * self.mass + 1.0
+            rate = 1.0 / self.mass
+            both = ok[:, None] & ok[None, :]
+            self.cov[both] += rate * (F[both] - self.cov[both])
+            C, d = self.cov, self.cov.diagonal().copy()
+            d_max = (d * okf).max() if n_ok else 0.0
+            w = np.zeros(m)
+            if d_max > 0:
+                tiny = 1e-12 * d_max
+                scale = np.sqrt(d)
+                g = self.gain if self.gain.max() > 0 else 0.5 * scale
+                self.n_updates += 1
+                for _ in range(das._startup_iter if self.n_updates <= das._startup_frames else 1):
+                    gm = g * okf
+                    g2 = gm * gm
+                    g_new = np.maximum(C @ gm - d * gm, 0.0) / (g2.sum() - g2 + tiny)
+                    g = np.minimum(np.maximum(np.sqrt(g * g_new), 1e-6 * np.sqrt(d_max)), scale)
+                self.gain = np.where(ok, g, self.gain)
+                noise = np.maximum(d - g * g, d * das._inv_snr_max)
+                w = g * okf / (noise + tiny)
+                w /= w.sum()
+        return Z @ w, w
+
+
+@pytest.mark.parametrize("weighting", ["equal", "adaptive"])
+@pytest.mark.parametrize("n_channels,frame,hop", [(3, 256, 64), (8, 512, 128), (6, 4096, 1024)])
+def test_beamform_matches_reference_to_float32_precision(weighting, n_channels, frame, hop):
+    # (8, 4096) and (6, 4096) build the steering table by the matmul path, (3, 256) by broadcasting
+    rng = np.random.default_rng(n_channels + frame)
+    n_blocks = 40
+    s = rng.standard_normal((n_blocks + 4) * hop)
+    x = np.stack([_frac_delay(s, d) for d in rng.uniform(-20, 20, n_channels)], axis=1)
+    x = (x + 0.3 * rng.standard_normal(x.shape)).astype(np.float32)
+    toa = rng.uniform(-2e-3, 2e-3, (n_blocks, n_channels))
+    toa[:, 0] = 0.0
+    toa[5, 1] = np.nan  # a device without a TOA for one frame
+    valid = rng.random((n_blocks, n_channels)) > 0.1
+    das = DelayAndSum(n_channels, frame_samples=frame, hop_samples=hop, sample_rate_hz=FS_HZ, weighting=weighting)
+    ref = _ReferenceDas(das)
+    ana = StreamingStft(n_channels, frame_samples=frame, hop_samples=hop)
+    for k in range(n_blocks):
+        X = ana.process(x[k * hop : (k + 1) * hop])
+        Y = das.beamform_spectra(X, toa[k], valid[k])
+        Y_ref, w_ref = ref.beamform(X.astype(np.complex128), toa[k], valid[k])
+        # The engine keeps the band statistics and the steering table in float32: ~1e-5 on the
+        # weights and ~3e-6 of the peak on Y (the time-major float64-table code it replaced: 1.1e-5
+        # and 1.3e-6 on the same data).
+        np.testing.assert_allclose(das.channel_weights, w_ref, rtol=5e-5, atol=1e-7)
+        np.testing.assert_allclose(Y, Y_ref, rtol=0, atol=1e-5 * np.abs(Y_ref).max())
+
+
+def test_steering_table_is_exp_of_i_omega_toa():
+    for n_channels, frame in ((2, 64), (5, 512), (16, 512), (4, 4096), (16, 4096)):
+        das = DelayAndSum(n_channels, frame_samples=frame, hop_samples=frame // 4, sample_rate_hz=48_000.0)
+        toa = np.random.default_rng(frame).uniform(-0.012, 0.012, n_channels)
+        steer = das._steering(toa)
+        assert steer.shape == (n_channels, frame // 2 + 1) and steer.dtype == np.complex64
+        exact = np.exp(1j * das.omega_rad_s[None, :] * toa[:, None])
+        np.testing.assert_allclose(steer, exact, rtol=0, atol=6e-7)
+
+
+def test_spectra_layout_does_not_change_the_output():
+    rng = np.random.default_rng(11)
+    m, frame, hop = 4, 256, 64
+    a = DelayAndSum(m, frame_samples=frame, hop_samples=hop, sample_rate_hz=FS_HZ)
+    b = DelayAndSum(m, frame_samples=frame, hop_samples=hop, sample_rate_hz=FS_HZ)
+    ana = StreamingStft(m, frame_samples=frame, hop_samples=hop)
+    for k in range(20):
+        X = ana.process(rng.standard_normal((hop, m)).astype(np.float32))  # channel-major
+        toa = rng.uniform(-1e-3, 1e-3, m)
+        np.testing.assert_array_equal(a.process_spectra(X, toa), b.process_spectra(np.ascontiguousarray(X), toa))

@@ -104,3 +104,74 @@ def test_streaming_equals_batch_and_identity_for_any_block_count(frame_pow, over
     latency = frame - hop
     if len(x) > latency:
         np.testing.assert_allclose(y[latency:], x[: len(x) - latency], atol=2e-5)
+
+
+def _naive_frames(x: np.ndarray, frame: int, hop: int, window: np.ndarray) -> np.ndarray:
+    """Reference analysis: zero-pad the past, slice frame k = [(k+1) hop - frame, (k+1) hop)."""
+    padded = np.concatenate([np.zeros((frame - hop, x.shape[1]), np.float32), x])
+    n = x.shape[0] // hop
+    frames = np.stack([padded[k * hop : k * hop + frame] for k in range(n)])
+    return scipy.fft.rfft(frames * window[None, :, None], axis=1, workers=1)
+
+
+@pytest.mark.parametrize("frame,hop", [(64, 16), (64, 64), (100, 25), (512, 128)])
+def test_ring_buffer_wraps_without_changing_the_frames(frame, hop):
+    # many more hops than the 2 * frame history holds: every wrap must keep the last frame
+    rng = np.random.default_rng(frame + hop)
+    x = rng.standard_normal((hop * (6 * frame // hop + 7), 3)).astype(np.float32)
+    ana = StreamingStft(3, frame_samples=frame, hop_samples=hop)
+    specs = np.array([ana.process(x[k * hop : (k + 1) * hop]) for k in range(x.shape[0] // hop)])
+    np.testing.assert_array_equal(specs, _naive_frames(x, frame, hop, ana.analysis_window))
+
+
+def test_spectra_are_channel_major_new_arrays():
+    ana = StreamingStft(4, frame_samples=256, hop_samples=64)
+    blk = np.ones((64, 4), np.float32)
+    a = ana.process(blk)
+    b = ana.process(blk)
+    assert a.shape == (129, 4) and a.T.flags.c_contiguous  # the layout GccPhat / DelayAndSum use
+    assert not np.shares_memory(a, b)
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    frame_pow=st.integers(min_value=3, max_value=9),
+    overlap=st.sampled_from([1, 2, 4]),
+    n_channels=st.integers(min_value=1, max_value=4),
+    splits=st.lists(st.integers(min_value=0, max_value=9), min_size=1, max_size=6),
+    seed=st.integers(min_value=0, max_value=2**31 - 1),
+)
+def test_process_many_equals_process_hop_by_hop(frame_pow, overlap, n_channels, splits, seed):
+    frame = 2**frame_pow
+    hop = frame // overlap
+    rng = np.random.default_rng(seed)
+    n_hops = sum(splits)
+    x = rng.standard_normal((n_hops * hop, n_channels)).astype(np.float32)
+    one = StreamingStft(n_channels, frame_samples=frame, hop_samples=hop)
+    streamed = [one.process(x[k * hop : (k + 1) * hop]) for k in range(n_hops)]
+    many = StreamingStft(n_channels, frame_samples=frame, hop_samples=hop)
+    batched, start = [], 0
+    for i, n in enumerate(splits):  # batches of any size, mixed with single hops
+        chunk = x[start * hop : (start + n) * hop]
+        if i % 2 and n:
+            batched.extend(many.process(chunk[k * hop : (k + 1) * hop]) for k in range(n))
+        else:
+            out = many.process_many(chunk)
+            assert out.shape == (n, frame // 2 + 1, n_channels) and out.dtype == np.complex64
+            assert all(o.T.flags.c_contiguous for o in out)
+            batched.extend(out)
+        start += n
+    np.testing.assert_array_equal(np.array(batched).reshape(-1), np.array(streamed).reshape(-1))
+    assert many.n_frames == one.n_frames == n_hops
+    # the state after the batches is the streaming state
+    tail = rng.standard_normal((hop, n_channels)).astype(np.float32)
+    np.testing.assert_array_equal(many.process(tail), one.process(tail))
+
+
+def test_process_many_validation():
+    ana = StreamingStft(2, frame_samples=64, hop_samples=16)
+    with pytest.raises(ValueError, match="blocks.shape"):
+        ana.process_many(np.zeros((40, 2), np.float32))
+    with pytest.raises(ValueError, match="blocks.shape"):
+        ana.process_many(np.zeros((32, 3), np.float32))
+    assert ana.process_many(np.zeros((0, 2), np.float32)).shape == (0, 33, 2)

@@ -189,6 +189,46 @@ def test_information_form_update_equals_filterpy(with_mask):
     assert est.n_pairs_used == used.sum()
 
 
+@pytest.mark.parametrize("n_mics", [3, 8])
+def test_long_run_equals_filterpy_with_changing_masks(n_mics):
+    """Every step of a long run (fast all-pairs path, masked pairs, NaN TDOAs, low confidence,
+    frames without any usable pair) matches filterpy's predict + update on the used pairs."""
+    rng = np.random.default_rng(n_mics)
+    _, tdoa, _ = drifting_track(n_mics, 120, seed=n_mics)
+    est = kalman(n_mics, gate_probability=None, min_confidence=0.2)
+    n_pairs = tdoa.shape[1]
+    for k, y in enumerate(tdoa):
+        conf = np.full(n_pairs, 0.9)
+        y = y.copy()
+        kind = k % 7 if k > 2 else 0  # the first frames initialise from all pairs
+        if kind == 1:
+            conf[rng.integers(0, n_pairs, 2)] = 0.1
+        elif kind == 2:
+            y[rng.integers(0, n_pairs)] = np.nan
+        elif kind == 3:
+            conf[:] = 0.0
+        elif kind == 4:
+            conf[rng.integers(0, n_pairs)] = np.nan
+        used = np.isfinite(y) & (conf > 0.2)
+        ref = copy.deepcopy(est._kf)
+        out = est.update(y, conf)
+        if k == 0:
+            continue
+        kf = KalmanFilter(dim_x=ref.dim_x, dim_z=max(1, int(used.sum())))
+        kf.x, kf.P, kf.F, kf.Q = ref.x.copy(), ref.P.copy(), ref.F, ref.Q
+        kf.predict()
+        if used.any():
+            kf.H, kf.R = ref.H[used], TDOA_STD_S**2 * np.eye(int(used.sum()))
+            kf.update(y[used])
+            assert est.last_mahalanobis_sq == pytest.approx(kf.mahalanobis**2, rel=1e-7)
+        else:
+            np.testing.assert_array_equal(est.state, kf.x)  # prediction only: bit-identical
+        np.testing.assert_allclose(est.state, kf.x, rtol=1e-9, atol=1e-15)
+        np.testing.assert_allclose(est.state_covariance, kf.P, rtol=1e-7, atol=1e-20)
+        np.testing.assert_array_equal(out, np.r_[0.0, est.state[: n_mics - 1]])
+        assert est.n_pairs_used == used.sum()
+
+
 def test_gated_outlier_leaves_prediction():
     n_mics = 4
     _, tdoa, _ = drifting_track(n_mics, 60)
