@@ -1,4 +1,4 @@
-"""Command line: ``adhoc-array replay``.
+"""Command line: ``adhoc-array replay`` and ``adhoc-array calibrate``.
 
 Every option of :class:`stream.config.EngineConfig` is a flag of the same name, and can also be
 given in a TOML file (``--config``). Errors the user can fix are printed as one sentence, exit 2.
@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any, Sequence
 
 from .config import EngineConfig, load_toml
-from .errors import AdhocArrayError
+from .errors import AdhocArrayError, ConfigError
 
 
 def _add_engine_options(p: argparse.ArgumentParser) -> None:
@@ -38,6 +38,24 @@ def _add_engine_options(p: argparse.ArgumentParser) -> None:
     g.add_argument("--block-s", type=float, help="replay block length in seconds")
     g.add_argument("--no-plots", dest="plots", action="store_const", const=False, help="skip the PNG plots")
     g.add_argument("--no-progress", dest="progress", action="store_const", const=False, help="no progress bar")
+    c = p.add_argument_group("calibration from a moving chirp beacon (on with --calibration-odometry)")
+    c.add_argument("--calibration-odometry", metavar="CSV",
+                   help="the beacon's odometry: dx_m,dy_m,dz_m[,interval_s], one row per step between chirps")
+    c.add_argument("--chirp-interval-s", type=float, help="time between chirps, if the odometry has no interval_s")
+    c.add_argument("--recalibrate-every", type=int, metavar="N", help="re-solve every N new chirps (default 8)")
+    c.add_argument("--chirp-duration-s", type=float, help="the beacon's linear chirp: duration (default 0.1 s)")
+    c.add_argument("--chirp-f0-hz", type=float, help="chirp start frequency (default 500 Hz)")
+    c.add_argument("--chirp-f1-hz", type=float, help="chirp end frequency (default 6000 Hz)")
+    c.add_argument("--chirp-threshold", type=float, help="detection threshold in robust noise units (default 10)")
+    c.add_argument("--calibration-method", choices=["hybrid", "baseline"], help="solver (default hybrid)")
+    c.add_argument("--calibration-apply", choices=["drift", "offsets", "none"],
+                   help="what a new geometry corrects in the stream (default drift: resampling + offsets)")
+    c.add_argument("--calibration-sigma-tdoa-s", type=float, help="assumed chirp TDOA noise (default 5e-5 s)")
+    c.add_argument("--calibration-sigma-odo-m", type=float, help="assumed odometry noise per step and axis (0.01 m)")
+    c.add_argument("--calibration-max-drift-std-ppm", type=float,
+                   help="correct a device's drift once its CRLB std is at most this (default 5 ppm)")
+    c.add_argument("--calibration-max-events", type=int, help="solve over at most the last this many chirps")
+    c.add_argument("--calibration-executor", choices=["thread", "process"], help="where solves run (default thread)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -51,6 +69,31 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument("--out", required=True, help="output folder")
     rp.add_argument("--config", help="TOML file with engine options")
     _add_engine_options(rp)
+    cp = sub.add_parser(
+        "calibrate", help="batch calibration: positions, clock offsets and drifts of the devices",
+        description="Solve the array geometry from measured TDOAs (--measurements FILE) or from one recording "
+                    "per device with the beacon's chirps plus its odometry (AUDIO... --odometry FILE). Writes "
+                    "geometry.json (positions, offsets, drifts with their CRLB standard deviations, verdict), "
+                    "geometry.png and calibration.json.",
+        epilog="Measurement files: .npz or .json with tdoa_events_s (K-1, N), tdoa_mics_s (K, N), odometry_m "
+               "(K-1, 3), interval_s (K-1,), sigma_tdoa_s, sigma_odo_m (optional: sigma_tdoa_mics_s, "
+               "speed_of_sound_m_s, truth_positions_m, device_names); or a recNN.npz of the hybrid-TDOA real data "
+               "(tdoa_s, tdoa_m_arr2/3, S, dt; choose its mics with --mics).")
+    cp.add_argument("audio", nargs="*", help="one recording per device (device 0 first), with --odometry")
+    src = cp.add_mutually_exclusive_group()
+    src.add_argument("--measurements", metavar="FILE", help="measured TDOAs and odometry (.npz or .json)")
+    src.add_argument("--odometry", metavar="CSV", help="the beacon's odometry for AUDIO (dx_m,dy_m,dz_m[,interval_s])")
+    cp.add_argument("--out", required=True, help="output folder")
+    cp.add_argument("--method", choices=["hybrid", "baseline"], default="hybrid", help="solver (default hybrid)")
+    cp.add_argument("--mics", help="hybrid-TDOA real data: global mic numbers, e.g. 0,6,12,9,13,15 (array 1 first)")
+    cp.add_argument("--chirp-interval-s", type=float, help="time between chirps, if the odometry has no interval_s")
+    cp.add_argument("--chirp-duration-s", type=float, default=0.1, help="chirp duration (default 0.1 s)")
+    cp.add_argument("--chirp-f0-hz", type=float, default=500.0, help="chirp start frequency (default 500 Hz)")
+    cp.add_argument("--chirp-f1-hz", type=float, default=6000.0, help="chirp end frequency (default 6000 Hz)")
+    cp.add_argument("--sigma-tdoa-s", type=float, help="TDOA noise (default: the file's, or 5e-5 s for audio)")
+    cp.add_argument("--sigma-odo-m", type=float, help="odometry noise (default: the file's, or 0.01 m)")
+    cp.add_argument("--seed", type=int, default=0, help="solver restarts' random seed")
+    cp.add_argument("--no-plots", dest="plots", action="store_false", help="skip geometry.png")
     return parser
 
 
@@ -97,6 +140,14 @@ def summary(report: dict[str, Any], out: Path) -> str:
         b = enh.get("best_single_device")
         if b:
             row(f"best single device ({b['device']})", "best_single_device")
+    cal = report.get("calibration")
+    if cal:
+        g = cal.get("geometry")
+        lines.append(f"  calibration ({cal['method']}, apply {cal['apply']}): {cal['n_solves']} solves, "
+                     f"{cal['n_adopted']} adopted, chirps heard " + "/".join(str(n) for n in cal["n_detections"])
+                     + (f"; last geometry over {g['n_events']} events" if g else "; no good geometry"))
+        for m in cal.get("messages", [])[:4]:
+            lines.append(f"  ! {m}")
     problems = [p for d in report.get("devices", []) for p in d.get("problems", [])]
     for p in problems[:8]:
         lines.append(f"  ! {p}")
@@ -106,6 +157,47 @@ def summary(report: dict[str, Any], out: Path) -> str:
         lines.append(f"  ! {report['error']}")
     lines.append(f"  wrote: {', '.join(report.get('outputs', []))}")
     return "\n".join(lines)
+
+
+def calibration_summary(result: dict[str, Any], out: Path) -> str:
+    """One screen for ``adhoc-array calibrate``."""
+    g = result["geometry"]
+    lines = [f"adhoc-array calibrate: {g.verdict}  ->  {out}",
+             f"  {g.method}: {g.n_devices} devices, {g.n_events} events, solved in {1e3 * g.solve_time_s:.1f} ms"]
+    names = list(g.device_names) or [f"dev{i}" for i in range(g.n_devices)]
+    for i in range(g.n_devices):
+        p = g.positions_m[i]
+        lines.append(f"  {names[i]:>8}: ({p[0]:+.3f}, {p[1]:+.3f}, {p[2]:+.3f}) m ± {_fmt(g.position_std_m[i], '.3f')}"
+                     f"   offset {_fmt(1e3 * g.offsets_s[i], '+.3f')} ± {_fmt(1e3 * g.offset_std_s[i], '.3f')} ms"
+                     f"   drift {_fmt(g.drifts_ppm[i], '+.1f')} ± {_fmt(g.drift_std_ppm[i], '.1f')} ppm")
+    if "location_error_m" in result:
+        lines.append(f"  against the file's ground truth (mic frame): location RMS "
+                     f"{result['location_error_m']['rms']:.3f} m")
+    if not g.converged:
+        lines.append(f"  ! the solver's verdict is '{g.verdict}': do not use this geometry")
+    lines.append(f"  wrote: {', '.join(result['outputs'])}")
+    return "\n".join(lines)
+
+
+def _run_calibrate(args: argparse.Namespace) -> int:
+    from .calibration import run_calibrate
+    mics = None
+    if args.mics:
+        try:
+            mics = [int(v) for v in args.mics.split(",")]
+        except ValueError:
+            raise ConfigError(f"--mics {args.mics!r} must be comma-separated integers") from None
+    if args.measurements is None and args.odometry is None:
+        raise ConfigError("Give --measurements FILE, or one audio file per device and --odometry FILE.")
+    if args.measurements is not None and args.audio:
+        raise ConfigError("Give either --measurements FILE or audio files with --odometry, not both.")
+    result = run_calibrate(args.out, measurements=args.measurements, audio=args.audio, odometry=args.odometry,
+                           method=args.method, mics=mics, chirp_interval_s=args.chirp_interval_s,
+                           chirp_duration_s=args.chirp_duration_s, chirp_f0_hz=args.chirp_f0_hz,
+                           chirp_f1_hz=args.chirp_f1_hz, sigma_tdoa_s=args.sigma_tdoa_s,
+                           sigma_odo_m=args.sigma_odo_m, seed=args.seed, plots=args.plots)
+    print(calibration_summary(result, Path(args.out)))
+    return 0 if result["geometry"].converged else 1
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -124,6 +216,12 @@ def main(argv: Sequence[str] | None = None) -> int:
             return 2
         print(summary(outcome.report, Path(args.out)))
         return 0 if outcome.report["status"] == "ok" else 1
+    if args.command == "calibrate":
+        try:
+            return _run_calibrate(args)
+        except AdhocArrayError as err:
+            print(f"adhoc-array: {err}", file=sys.stderr)
+            return 2
     parser.error(f"unknown command {args.command}")
     return 2
 

@@ -7,6 +7,13 @@ A TOML config uses the same names as the long CLI flags, with underscores::
     frame_samples = 512
     hop_samples = 128
     working_rate_hz = 16000
+
+Calibration from a moving chirp beacon is on when ``calibration_odometry`` names the beacon's odometry file
+(``dx_m,dy_m,dz_m[,interval_s]``, one row per step between chirps)::
+
+    calibration_odometry = "beacon_odometry.csv"
+    recalibrate_every = 8          # re-solve every 8 new chirps
+    calibration_apply = "drift"    # resample each device to its clock rate and set its offset
 """
 from __future__ import annotations
 
@@ -21,6 +28,9 @@ from .errors import ConfigError
 
 Estimator = Literal["subset", "pinv", "kalman", "smoother"]
 Weighting = Literal["equal", "adaptive"]
+CalibrationMethod = Literal["hybrid", "baseline"]
+CalibrationApply = Literal["drift", "offsets", "none"]
+CalibrationExecutor = Literal["thread", "process"]
 
 PAPER_FRAME_S = 4096 / 48000  # the TOA paper's analysis frame: 4096 samples at 48 kHz (85.3 ms)
 
@@ -58,6 +68,21 @@ class EngineConfig:
     # outputs
     plots: bool = True
     progress: bool = True
+    # calibration from a moving chirp beacon (stream/calibration.py); off without calibration_odometry
+    calibration_odometry: str | None = None
+    chirp_interval_s: float | None = None        # when the odometry file has no interval_s column
+    recalibrate_every: int = 8                   # re-solve every this many new chirps
+    chirp_duration_s: float = 0.1
+    chirp_f0_hz: float = 500.0
+    chirp_f1_hz: float = 6000.0
+    chirp_threshold: float = 10.0                # matched-filter envelope over its robust noise level
+    calibration_method: CalibrationMethod = "hybrid"
+    calibration_apply: CalibrationApply = "drift"
+    calibration_sigma_tdoa_s: float = 5e-5
+    calibration_sigma_odo_m: float = 0.01
+    calibration_max_drift_std_ppm: float = 5.0   # a device's drift is corrected once its CRLB std is this small
+    calibration_max_events: int = 200
+    calibration_executor: CalibrationExecutor = "thread"
 
     def resolved(self, reference_rate_hz: float) -> "EngineConfig":
         """Fill in the automatic values for a given reference device rate and validate everything."""
@@ -95,9 +120,35 @@ class EngineConfig:
             raise ConfigError(f"speed={self.speed} must be > 0 (or absent for as fast as possible)")
         if self.smoother_lag_frames < 1:
             raise ConfigError(f"smoother_lag_frames={self.smoother_lag_frames} must be >= 1")
+        self._validate_calibration()
         if self.frame_samples and self.working_rate_hz and self.max_tdoa_s * self.working_rate_hz >= self.frame_samples / 2:
             raise ConfigError(f"max_tdoa_s={self.max_tdoa_s} must be shorter than half a frame "
                               f"({self.frame_samples / 2 / self.working_rate_hz:.4f} s)")
+
+    def _validate_calibration(self) -> None:
+        if self.calibration_method not in ("hybrid", "baseline"):
+            raise ConfigError(f"calibration_method={self.calibration_method!r} must be 'hybrid' or 'baseline'")
+        if self.calibration_apply not in ("drift", "offsets", "none"):
+            raise ConfigError(f"calibration_apply={self.calibration_apply!r} must be 'drift', 'offsets' or 'none'")
+        if self.calibration_executor not in ("thread", "process"):
+            raise ConfigError(f"calibration_executor={self.calibration_executor!r} must be 'thread' or 'process'")
+        if int(self.recalibrate_every) != self.recalibrate_every or self.recalibrate_every < 3:
+            raise ConfigError(f"recalibrate_every={self.recalibrate_every} must be an integer >= 3 (chirps)")
+        if int(self.calibration_max_events) != self.calibration_max_events or self.calibration_max_events < 3:
+            raise ConfigError(f"calibration_max_events={self.calibration_max_events} must be an integer >= 3")
+        for name in ("chirp_duration_s", "chirp_threshold", "calibration_sigma_tdoa_s", "calibration_sigma_odo_m",
+                     "calibration_max_drift_std_ppm"):
+            if not getattr(self, name) > 0:
+                raise ConfigError(f"{name}={getattr(self, name)} must be > 0")
+        if self.chirp_interval_s is not None and not self.chirp_interval_s > 0:
+            raise ConfigError(f"chirp_interval_s={self.chirp_interval_s} must be > 0 s")
+        if not 0 <= self.chirp_f0_hz < self.chirp_f1_hz:
+            raise ConfigError(f"chirp_f0_hz={self.chirp_f0_hz} and chirp_f1_hz={self.chirp_f1_hz} must satisfy "
+                              "0 <= f0 < f1")
+        if (self.calibration_odometry is not None and self.working_rate_hz
+                and self.chirp_f1_hz >= self.working_rate_hz / 2):
+            raise ConfigError(f"chirp_f1_hz={self.chirp_f1_hz} must be below half the working rate "
+                              f"({self.working_rate_hz / 2:g} Hz)")
 
     def as_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)

@@ -4,8 +4,12 @@
 
     Source ─Frame─▶ DeviceConditioner ─▶ Aligner ─Block─▶ StreamingStft ─▶ GccPhat ─TdoaFrame─▶
         ToaEstimator ─ToaEstimate─▶ DelayAndSum ─▶ sinks (enhanced.wav, toa.csv)
+                      └─ ChirpDetector ─▶ StreamCalibrator (snapshot ─▶ calibrate() in an executor ─▶ Geometry)
 
-Each channel's spectrum is computed once per hop and shared by GCC-PHAT and the beamformer.
+Each channel's spectrum is computed once per hop and shared by GCC-PHAT and the beamformer. With a
+calibrator, every device's conditioned stream (its own clock) also goes through a chirp detector, and once per
+block, at the frame boundary, a newly solved geometry is swapped in: each device's resampler gets its clock
+rate (``rate_ratio``) and the aligner its clock offset (:meth:`Pipeline.apply_geometry`).
 """
 from __future__ import annotations
 
@@ -19,15 +23,19 @@ import numpy as np
 
 import beamform
 import estimators
+from estimators import SPEED_OF_SOUND_M_S
 
 from .align import Aligner, AlignmentEvent
-from .condition import DeviceConditioner, DeviceCounters
+from .calibration import RetunableConditioner, StreamCalibrator
+from .condition import DeviceCounters
 from .config import EngineConfig
-from .messages import Block, Frame, TdoaFrame, ToaEstimate
+from .geometry import Geometry
+from .messages import Block, Frame, FrameFlag, TdoaFrame, ToaEstimate
 
 log = logging.getLogger(__name__)
 
 RECENTRE_FRAMES = 24   # frames whose median fine TOA decides a re-centring of the coarse alignment
+MAX_OFFSET_STD_S = 1e-3   # a calibrated clock offset moves the coarse alignment only when this certain
 
 
 def make_estimator(config: EngineConfig, n_devices: int):
@@ -83,17 +91,30 @@ class Pipeline:
         Keep the aligned multi-device input in memory (for metrics against ground truth).
     on_block : callable, optional
         Called with ``(Block, ToaEstimate, enhanced_hop)`` after each block (sinks).
+    rate_ratios : sequence of float, optional
+        Initial clock correction of every device (``DeviceConditioner.rate_ratio``).
+    calibrator : StreamCalibrator, optional
+        Periodic recalibration from a chirp beacon (detection per device, solves in a worker, swaps).
     """
 
     def __init__(self, config: EngineConfig, device_rates_hz: Iterable[float], *, keep_input: bool = False,
                  on_block: Callable[[Block, ToaEstimate, np.ndarray], None] | None = None,
-                 rate_ratios: Iterable[float] | None = None) -> None:
+                 rate_ratios: Iterable[float] | None = None, calibrator: StreamCalibrator | None = None) -> None:
         self.config = config
         rates = list(device_rates_hz)
         self.n_devices = len(rates)
         ratios = list(rate_ratios) if rate_ratios is not None else [1.0] * self.n_devices
         fs = config.working_rate_hz
-        self.conditioners = [DeviceConditioner(r, working_rate_hz=fs, rate_ratio=q) for r, q in zip(rates, ratios)]
+        retune = calibrator is not None and calibrator.apply == "drift"
+        self.conditioners = [RetunableConditioner(r, working_rate_hz=fs, rate_ratio=q, keep_history=retune)
+                             for r, q in zip(rates, ratios)]
+        self.calibrator = calibrator
+        self.geometry: Geometry | None = None
+        self.geometry_log: list[dict] = []
+        if calibrator is not None:
+            if calibrator.n_devices != self.n_devices:
+                raise ValueError(f"calibrator.n_devices={calibrator.n_devices} must equal {self.n_devices=}")
+            calibrator.bind([c.clock for c in self.conditioners])
         self.aligner = Aligner(self.n_devices, sample_rate_hz=fs, hop_samples=config.hop_samples,
                                align_window_s=config.align_window_s, max_offset_s=config.max_offset_s,
                                recheck_s=config.align_recheck_s)
@@ -127,13 +148,30 @@ class Pipeline:
     def feed(self, frame: Frame) -> None:
         """Process one device frame (all complete blocks it releases go through the chain)."""
         samples, flags = self.conditioners[frame.device_id].process(frame)
+        if self.calibrator is not None:
+            self.calibrator.observe(frame.device_id, samples, last=bool(flags & FrameFlag.LAST))
         for block in self.aligner.push(frame.device_id, samples, flags):
             self.process_block(block)
 
     def finish(self) -> None:
-        """Flush: release the last blocks and the beamformer's tail."""
+        """Flush: release the last blocks and the beamformer's tail; then a last calibration solve (bounded
+        wait: the audio is done)."""
         for block in self.aligner.finish():
             self.process_block(block)
+        if self.calibrator is not None:
+            n0 = self.counters.n_blocks * self.config.hop_samples
+            geometry = self.calibrator.finish(
+                time_s=n0 / self.config.working_rate_hz,
+                delta_s=self.clock_relation(n0, self._last_offsets) if self.aligner.ready else None)
+            if geometry is not None:
+                self.geometry = geometry
+                off = [False] * self.n_devices
+                self.geometry_log.append({"time_s": n0 / self.config.working_rate_hz, "n_events": geometry.n_events,
+                                          "applied": False, "drift_applied": off, "offset_applied": off,
+                                          "offset_action": [None] * self.n_devices,
+                                          "shift_samples": [0] * self.n_devices,
+                                          "rate_ratios": [c.rate_ratio for c in self.conditioners],
+                                          "note": "solved after the end of the audio"})
         tail_blocks = -(-self.latency_samples // self.config.hop_samples)
         zeros = np.zeros((self.config.hop_samples, self.n_devices), np.float32)
         toa = self._fine_toa_s
@@ -146,6 +184,12 @@ class Pipeline:
         cfg = self.config
         fs = cfg.working_rate_hz
         time_s = (block.first_sample + cfg.hop_samples - cfg.frame_samples / 2) / fs   # frame centre
+        if self.calibrator is not None:  # frame boundary: collect a finished solve, never wait for one
+            geometry = self.calibrator.step(
+                time_s=block.first_sample / fs,
+                delta_s=lambda: self.clock_relation(block.first_sample, block.offsets_samples))
+            if geometry is not None:
+                self.apply_geometry(geometry, next_first_sample=block.first_sample + cfg.hop_samples)
         self._follow_offsets(block)
         spectra = self.stft.process(block.samples)
         if self.gcc is not None:
@@ -165,6 +209,107 @@ class Pipeline:
         self.state.block_ms.append(1e3 * (time.perf_counter() - t0))
         if self.on_block is not None:
             self.on_block(block, toa, enhanced)
+
+    # calibration -----------------------------------------------------------------------------
+    def clock_relation(self, first_sample: int, offsets_samples: np.ndarray) -> np.ndarray:
+        """``c_i - c_0`` (seconds): every device's clock minus device 0's at reference sample ``first_sample``,
+        through the coarse alignment and each device's clock map. NaN for devices the aligner left out.
+
+        Returns
+        -------
+        ndarray, shape (n_devices,)
+        """
+        c = np.array([cond.clock.clock_s(first_sample + int(o)) for cond, o in
+                      zip(self.conditioners, offsets_samples)])
+        out = c - c[0]
+        out[~self.aligner.aligned] = np.nan
+        out[0] = 0.0
+        return out
+
+    def apply_geometry(self, geometry: Geometry, *, next_first_sample: int) -> None:
+        """Swap in a new geometry at a frame boundary (effective from the next block).
+
+        Per device ``i >= 1``, with the clock model ``c_i = c_0 + offset_i + drift_i (c_0 - epoch)``
+        (:mod:`stream.geometry`):
+
+        - drift (``calibration_apply = "drift"``, once its CRLB standard deviation is at most
+          ``calibration_max_drift_std_ppm``): the device's resampler takes the rate ``q = 1 + drift_i``; its
+          last clock segment ``c = c_s + (m - m_s) q / fs`` then puts the clock offset (the working-rate sample
+          ``m`` that lines up with reference sample ``n``) at the constant ``o = m - n = m_s + fs (offset_i -
+          (q - 1) epoch - c_s) / q``, and the TOA estimator's rate state moves by the rate change;
+        - offset (``drift`` or ``offsets``, once its standard deviation is at most ``MAX_OFFSET_STD_S``): the
+          current total TOA (coarse offset + fine TOA) minus the clock offset ``o = index_of(c_i(n)) - n`` is the
+          acoustic part. When it is plausible (within the device distance over c, plus 3 standard deviations
+          and 2 ms) the coarse/fine split is kept: GCC-PHAT stays centred on the talker. Otherwise the coarse
+          alignment was wrong: it is repaired to the clock offset and the estimator restarts.
+
+        Every coarse change goes through :meth:`Aligner.shift`; :meth:`_follow_offsets` moves the estimator
+        with it, so the steering stays continuous.
+        """
+        self.geometry = geometry
+        mode = self.calibrator.apply if self.calibrator is not None else "drift"
+        fs = self.config.working_rate_hz
+        n_dev = self.n_devices
+        entry = {"time_s": next_first_sample / fs, "n_events": geometry.n_events, "applied": mode != "none",
+                 "drift_applied": [False] * n_dev, "offset_applied": [False] * n_dev,
+                 "offset_action": [None] * n_dev, "shift_samples": [0] * n_dev,
+                 "rate_ratios": [c.rate_ratio for c in self.conditioners]}
+        if mode == "none":
+            self.geometry_log.append(entry)
+            return
+        n = int(next_first_sample)
+        c0 = n / fs
+        rate_change = np.zeros(n_dev)
+        repaired = False
+        for d in range(1, n_dev):
+            off, drift, q = geometry.offsets_s[d], geometry.drifts_ppm[d], float(geometry.rate_ratios[d])
+            if not (np.isfinite(off) and np.isfinite(drift) and geometry.offset_std_s[d] <= MAX_OFFSET_STD_S):
+                continue
+            cond = self.conditioners[d]
+            o_now = cond.clock.index_of(c0 + off + (q - 1.0) * (c0 - geometry.epoch_clock_s)) - n
+            coarse = int(self.aligner.offsets_samples[d])
+            acoustic = coarse + self._fine_toa_s[d] * fs - o_now
+            dist_s = float(np.linalg.norm(geometry.positions_m[d] - geometry.positions_m[0])) / SPEED_OF_SOUND_M_S
+            bound = (dist_s if np.isfinite(dist_s) else self.config.max_tdoa_s) + 3 * geometry.offset_std_s[d] + 2e-3
+            o_new = o_now
+            drift_ok = geometry.drift_std_ppm[d] <= self.config.calibration_max_drift_std_ppm
+            if mode == "drift" and not cond.ended and drift_ok:
+                rate_change[d] = q - cond.rate_ratio
+                cond.retune(q)
+                m_s, c_s = cond.clock.start_index[-1], cond.clock.start_clock_s[-1]
+                o_new = m_s + fs * (off - (q - 1.0) * geometry.epoch_clock_s - c_s) / q
+                entry["drift_applied"][d] = True
+            if abs(acoustic) <= bound * fs:
+                target, action = coarse + (o_new - o_now), "kept"
+            else:
+                target, action = o_new, "repaired"
+                repaired = True
+            delta = int(round(target)) - coarse
+            entry["shift_samples"][d] = delta
+            entry["offset_applied"][d] = True
+            entry["offset_action"][d] = action
+            reason = ("calibration: clock rate" if action == "kept" else
+                      f"calibration: coarse offset disagreed with the clock offset by {1e3 * acoustic / fs:+.1f} ms")
+            self.aligner.shift(d, delta, reason=reason)
+        entry["rate_ratios"] = [c.rate_ratio for c in self.conditioners]
+        if repaired and self.estimator is not None:
+            self.estimator.reset()
+        elif rate_change.any():
+            self._shift_toa_rate(-rate_change)
+        self.geometry_log.append(entry)
+
+    def _shift_toa_rate(self, delta_rate: np.ndarray) -> None:
+        """A resampler's new rate changes the fine TOA's rate (s/s) the estimator tracks by ``delta_rate``
+        (device ``i`` against device 0): move its rate state with it, as :meth:`KalmanToa.shift` does for
+        the TOA, so that the change does not look like clutter. Estimators without a rate are left alone."""
+        kf = getattr(self.estimator, "_kf", None)
+        if kf is None or not getattr(self.estimator, "initialised", False):
+            return
+        m = self.n_devices - 1
+        step = np.zeros(2 * m)
+        step[m:] = delta_rate[1:] - delta_rate[0]
+        for name in ("x", "x_prior", "x_post"):
+            setattr(kf, name, np.asarray(getattr(kf, name), dtype=np.float64) + step)
 
     # helpers ---------------------------------------------------------------------------------
     def _pair_valid(self, valid: np.ndarray) -> np.ndarray:

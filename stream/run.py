@@ -10,15 +10,17 @@ import platform
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 from tqdm import tqdm
 
 from . import sinks
+from .calibration import CalibrationSnapshot, OdometryLog, StreamCalibrator, load_odometry_csv
 from .config import EngineConfig, merge
 from .errors import InputFileError, StreamError
 from .fixture import Fixture, is_fixture_dir, load_fixture
+from .geometry import Geometry
 from .pipeline import Pipeline
 from .replay import ReplaySource
 
@@ -60,8 +62,42 @@ def resolve_inputs(inputs: Sequence[str | Path]) -> tuple[list[Path], list[str] 
     return [Path(p) for p in inputs], None, None
 
 
+def make_calibrator(cfg: EngineConfig, n_devices: int, out: Path, *, device_names: Sequence[str] = (),
+                    solver: Callable[[CalibrationSnapshot], Geometry] | None = None,
+                    on_geometry: Callable[[Geometry], None] | None = None) -> StreamCalibrator | None:
+    """The stream's calibrator from the resolved options (None when ``calibration_odometry`` is unset).
+
+    Every adopted geometry is written to ``out/geometry.json`` (atomically) and then handed to
+    ``on_geometry`` (the publish hook).
+    """
+    if not cfg.calibration_odometry:
+        return None
+    if n_devices < 3:
+        log.warning("Calibration needs at least 3 devices and %d deliver audio; the stream runs without it.",
+                    n_devices)
+        return None
+    odo, iv = load_odometry_csv(cfg.calibration_odometry, interval_s=cfg.chirp_interval_s)
+    import estimators
+    template = estimators.linear_chirp(duration_s=cfg.chirp_duration_s, f0_hz=cfg.chirp_f0_hz,
+                                       f1_hz=cfg.chirp_f1_hz, sample_rate_hz=cfg.working_rate_hz)
+
+    def publish(geometry: Geometry) -> None:
+        geometry.save(out / "geometry.json")
+        if on_geometry is not None:
+            on_geometry(geometry)
+
+    return StreamCalibrator(
+        n_devices, template=template, sample_rate_hz=cfg.working_rate_hz, odometry=OdometryLog(odo, iv),
+        recalibrate_every=cfg.recalibrate_every, method=cfg.calibration_method, apply=cfg.calibration_apply,
+        sigma_tdoa_s=cfg.calibration_sigma_tdoa_s, sigma_odo_m=cfg.calibration_sigma_odo_m,
+        threshold=cfg.chirp_threshold, solver=solver, on_geometry=publish, executor=cfg.calibration_executor,
+        max_events=cfg.calibration_max_events, device_names=device_names)
+
+
 def run_replay(inputs: Sequence[str | Path], out_dir: str | Path, *, config: EngineConfig | None = None,
-               overrides: Sequence[tuple[dict[str, Any], str]] = ()) -> RunOutcome:
+               overrides: Sequence[tuple[dict[str, Any], str]] = (),
+               solver: Callable[[CalibrationSnapshot], Geometry] | None = None,
+               on_geometry: Callable[[Geometry], None] | None = None) -> RunOutcome:
     """Replay recordings through the live path and write every output into ``out_dir``.
 
     Parameters
@@ -88,6 +124,7 @@ def run_replay(inputs: Sequence[str | Path], out_dir: str | Path, *, config: Eng
     t_wall0, t_cpu0 = time.perf_counter(), time.process_time()
     report: dict[str, Any] = {"status": "ok", "inputs": [str(p) for p in paths]}
     pipeline = None
+    calibrator = None
     wav = csv_sink = None
     try:
         with ReplaySource(paths, block_s=cfg.block_s, speed=cfg.speed, names=names) as src:
@@ -103,7 +140,9 @@ def run_replay(inputs: Sequence[str | Path], out_dir: str | Path, *, config: Eng
             if len(src.active) == 1:
                 log.warning("Only one device delivers audio; the output is that device's signal and every TOA is 0.")
             keep = fixture is not None and src.duration_s <= KEEP_INPUT_MAX_S
-            pipeline = Pipeline(cfg, src.sample_rates_hz, keep_input=keep)
+            calibrator = make_calibrator(cfg, len(src.active), out, device_names=[d.name for d in src.active],
+                                         solver=solver, on_geometry=on_geometry)
+            pipeline = Pipeline(cfg, src.sample_rates_hz, keep_input=keep, calibrator=calibrator)
             wav = sinks.WavSink(out / "enhanced.wav", sample_rate_hz=cfg.working_rate_hz,
                                 skip_samples=pipeline.latency_samples)
             csv_sink = sinks.ToaCsvSink(out / "toa.csv", [d.name for d in src.active])
@@ -142,8 +181,12 @@ def run_replay(inputs: Sequence[str | Path], out_dir: str | Path, *, config: Eng
                 flush_outputs()
             except Exception:  # noqa: BLE001
                 pass
+        if calibrator is not None:
+            calibrator.close()
         _finalise(report, out, cfg, pipeline, fixture, names, paths, collector, t_wall0, t_cpu0, wav, csv_sink)
         raise
+    if calibrator is not None:
+        calibrator.close()
     _finalise(report, out, cfg, pipeline, fixture, names, paths, collector, t_wall0, t_cpu0, wav, csv_sink)
     return RunOutcome(report, pipeline, out)
 
@@ -201,6 +244,15 @@ def _finalise(report, out, cfg, pipeline, fixture, names, paths, collector, t_wa
             "hop_ms": 1e3 * cfg.hop_samples / fs,
             "cpu_fraction_of_one_core": float(np.median(block_ms) / (1e3 * cfg.hop_samples / fs)),
         }
+        if pipeline.calibrator is not None:
+            report["calibration"] = {**pipeline.calibrator.report(), "applied": pipeline.geometry_log}
+            if cfg.plots and pipeline.calibrator.geometry is not None:
+                from .geometry import plot_geometry
+                try:
+                    plot_geometry(out / "geometry.png", pipeline.calibrator.geometry)
+                except Exception as err:  # noqa: BLE001 - plots must never lose the other outputs
+                    log.warning("The geometry plot could not be drawn (%s: %s); geometry.json is written.",
+                                type(err).__name__, err)
         if fixture is not None and report["status"] == "ok":
             from .evaluate import evaluate_run
             index = [names.index(d["name"]) for d in active] if names else list(range(pipeline.n_devices))

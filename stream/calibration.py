@@ -1,0 +1,1287 @@
+"""Array calibration from a moving chirp beacon: batch (files) and periodic, in the stream.
+
+::
+
+    device frames ─▶ RetunableConditioner ─▶ ChirpDetector (per device, own clock) ─▶ CalibrationObservations
+                                                   (bounded, drop-oldest)   │ snapshot every N events
+    OdometryLog (file now; a zenoh key later) ───────────────────────────────┤
+                                                                             ▼
+                       calibrate(snapshot) in a concurrent.futures executor ─▶ Geometry
+                                                                             │ future.done(), once per block
+    Pipeline: at a frame boundary, new rate_ratio per device (drift) + Aligner.shift (offset) ◀─┘ + publish
+
+Time conventions
+----------------
+- A device's *clock* ``c_i`` is its sample index over its nominal rate (first sample = 0), seconds.
+- A device's conditioned stream (working rate) has its own sample index ``m``; :class:`ClockMap` maps ``m`` to
+  ``c_i`` (piecewise linear: ``c = c_start + (m - m_start) * rate_ratio / working_rate_hz``), one segment per
+  rate change. Chirp onsets are detected on the conditioned stream and carried as ``(m, c_i)``.
+- A beacon emits chirp ``j`` at ``t_j`` (``t_0 = 0``, ``interval_s[j] = t_{j+1} - t_j``) after moving by
+  ``odometry_m[j]``; the engine knows the schedule and the odometry, not the absolute emission time. The
+  arrival on device ``i``'s clock is ``T_ij = |x_i - s_j| / c + tau_i + (1 + delta_i) t_j``
+  (:mod:`estimators.hybrid_tdoa`, eq. 4).
+- The resulting :class:`stream.geometry.Geometry` maps device 0's clock to every other device's clock.
+
+Calibration never blocks the stream: the pipeline calls :meth:`StreamCalibrator.step` once per block, which only
+checks ``future.done()``; a snapshot of the observations (small immutable arrays) is solved in a
+``ThreadPoolExecutor(max_workers=1)``; ``future.result()`` re-raises a worker error on the consumer thread,
+where it becomes one sentence in the report and the last good geometry stays in force.
+"""
+from __future__ import annotations
+
+import collections
+import concurrent.futures
+import csv
+import dataclasses
+import json
+import logging
+import math
+import threading
+import time
+from pathlib import Path
+from typing import Any, Callable, Literal, Sequence
+
+import numpy as np
+
+import estimators
+
+from .condition import DeviceConditioner, DeviceCounters
+from .errors import AdhocArrayError, ConfigError, InputFileError
+from .geometry import Geometry
+from .messages import Frame, FrameFlag
+
+log = logging.getLogger(__name__)
+
+__all__ = [
+    "CalibrationSnapshot",
+    "ChirpDetection",
+    "ChirpDetector",
+    "CalibrationObservations",
+    "ClockMap",
+    "OdometryLog",
+    "RetunableConditioner",
+    "StreamCalibrator",
+    "calibrate",
+    "calibrate_recordings",
+    "load_measurements",
+    "load_odometry_csv",
+    "run_calibrate",
+    "solve_geometry",
+]
+
+Method = Literal["hybrid", "baseline"]
+Apply = Literal["drift", "offsets", "none"]
+
+HISTORY_S = 0.25              # input kept per device to prime a resampler after a rate change
+ASSIGN_TOLERANCE_S = 0.06     # largest distance of a detection from its scheduled event (reference clock):
+                              # coarse-alignment error + propagation differences
+MAX_DRIFT = 2e-4              # largest rate difference between device 0's clock and the beacon's schedule
+PRIOR_DOF = 4.0               # weight (degrees of freedom) of the assumed TDOA noise in the reported bounds
+MIN_SOLVE_EVENTS = 6          # no solve over fewer events (the geometry is not determined)
+ADAPT_PASSES = 3              # re-solves with the TDOA noise re-estimated from the residuals
+MIN_SIGMA_TDOA_S = 1e-6       # floor of a re-estimated TDOA noise
+MIN_EVENTS_TO_NUMBER = 4      # scheduled events matched before the event numbering is fixed
+COMPLETE_GUARD_S = 0.1        # an event counts once every device has processed this far past it
+MIN_DETECTIONS = 3            # a device needs this many assigned chirps to enter a solve
+ATTEMPT_EVERY_S = 0.2         # stream time between two checks for enough new complete events
+
+
+class CalibrationError(AdhocArrayError, RuntimeError):
+    """A calibration cannot be set up or solved (bad measurements, too few events)."""
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Odometry and measurement files
+# ----------------------------------------------------------------------------------------------------------------
+class OdometryLog:
+    """The beacon's emission schedule and odometry: step ``j`` (event ``j`` -> ``j + 1``) is a displacement
+    ``(3,)`` in metres and an interval in seconds.
+
+    A file fills it at once (:func:`load_odometry_csv`). A live source appends steps as they arrive with
+    :meth:`append` (thread-safe) — the seam for a zenoh odometry key once networking lands: a subscriber
+    callback only calls ``append``.
+    """
+
+    def __init__(self, odometry_m: np.ndarray | None = None, interval_s: np.ndarray | None = None) -> None:
+        self._lock = threading.Lock()
+        self._odo: list[np.ndarray] = []
+        self._iv: list[float] = []
+        if odometry_m is not None:
+            odo = np.asarray(odometry_m, float).reshape(-1, 3)
+            iv = np.asarray(interval_s, float).reshape(-1)
+            if len(iv) != len(odo):
+                raise ValueError(f"{len(iv)=} intervals must match {len(odo)=} odometry steps")
+            for d, t in zip(odo, iv):
+                self.append(d, t)
+
+    def append(self, displacement_m, interval_s: float) -> None:
+        d = np.asarray(displacement_m, float).reshape(3)
+        if not (np.isfinite(interval_s) and interval_s > 0):
+            raise ValueError(f"{interval_s=} must be a positive number of seconds")
+        with self._lock:
+            self._odo.append(d)
+            self._iv.append(float(interval_s))
+
+    @property
+    def n_steps(self) -> int:
+        with self._lock:
+            return len(self._iv)
+
+    def snapshot(self) -> tuple[np.ndarray, np.ndarray]:
+        """(odometry_m (n_steps, 3), interval_s (n_steps,)) copies."""
+        with self._lock:
+            odo = np.array(self._odo, float).reshape(-1, 3)
+            iv = np.array(self._iv, float)
+        return odo, iv
+
+
+_COLUMNS = {"dx": ("dx", "dx_m"), "dy": ("dy", "dy_m"), "dz": ("dz", "dz_m"),
+            "interval": ("interval", "interval_s", "dt", "dt_s")}
+
+
+def load_odometry_csv(path: str | Path, *, interval_s: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Read the beacon's odometry: one row per step between consecutive chirps.
+
+    Header ``dx_m,dy_m,dz_m,interval_s`` (also ``dx,dy,dz,dt``); row ``j`` is the displacement from chirp
+    ``j`` to chirp ``j + 1`` in metres (odometry frame) and the time between their emissions in seconds.
+    Without an interval column every interval is ``interval_s``. Empty cells are NaN (missing odometry).
+
+    Returns
+    -------
+    odometry_m : ndarray, shape (n_steps, 3)
+    interval_s : ndarray, shape (n_steps,)
+    """
+    path = Path(path)
+    try:
+        with open(path, newline="") as fh:
+            rows = list(csv.reader(fh))
+    except OSError as err:
+        raise InputFileError(f"Odometry file {path} cannot be read ({err}).") from None
+    rows = [r for r in rows if r and not r[0].lstrip().startswith("#")]
+    if len(rows) < 3:
+        raise InputFileError(f"Odometry file {path} needs a header and at least 2 steps (3 chirps).")
+    header = [h.strip().lower() for h in rows[0]]
+    col = {}
+    for key, names in _COLUMNS.items():
+        hits = [header.index(n) for n in names if n in header]
+        if hits:
+            col[key] = hits[0]
+    missing = [k for k in ("dx", "dy", "dz") if k not in col]
+    if missing:
+        raise InputFileError(f"Odometry file {path} has no column {missing[0]}_m; the header must be "
+                             "dx_m,dy_m,dz_m[,interval_s].")
+    if "interval" not in col and interval_s is None:
+        raise InputFileError(f"Odometry file {path} has no interval_s column; give the chirp interval "
+                             "(--chirp-interval-s).")
+
+    def num(cell: str) -> float:
+        cell = cell.strip()
+        return float(cell) if cell else float("nan")
+
+    try:
+        odo = np.array([[num(r[col["dx"]]), num(r[col["dy"]]), num(r[col["dz"]])] for r in rows[1:]])
+        iv = (np.array([num(r[col["interval"]]) for r in rows[1:]]) if "interval" in col
+              else np.full(len(rows) - 1, float(interval_s)))
+    except (ValueError, IndexError) as err:
+        raise InputFileError(f"Odometry file {path} has a malformed row ({err}).") from None
+    if not np.all(np.isfinite(iv) & (iv > 0)):
+        raise InputFileError(f"Odometry file {path}: every interval must be a positive number of seconds.")
+    return odo, iv
+
+
+@dataclasses.dataclass(frozen=True)
+class Measurements:
+    """A calibration problem read from a file, with its ground truth when the file has one."""
+
+    problem: estimators.HybridTdoaProblem
+    truth_positions_m: np.ndarray | None
+    device_names: tuple[str, ...]
+    source: str
+
+
+# the authors' M = 6 selection with i = j = k = 1 (benchmarks/hybrid_tdoa_real.py): arrays 1, 2, 3, then 2, 3, 3
+SHARED_DEFAULT_MICS = (0, 6, 12, 9, 13, 15)
+
+
+def load_measurements(path: str | Path, *, mics: Sequence[int] | None = None, sigma_tdoa_s: float | None = None,
+                      sigma_odo_m: float | None = None) -> Measurements:
+    """Read measured TDOAs and odometry.
+
+    Two formats:
+
+    - ours (``.npz`` or ``.json``): ``tdoa_events_s`` (K-1, N) TDOA-S (optional), ``tdoa_mics_s`` (K, N) TDOA-M
+      against device 0, ``odometry_m`` (K-1, 3), ``interval_s`` (K-1,), ``sigma_tdoa_s``, ``sigma_odo_m``, and
+      optionally ``sigma_tdoa_mics_s``, ``speed_of_sound_m_s``, ``truth_positions_m`` (N, 3),
+      ``device_names``; NaN (JSON null) marks a missed chirp.
+    - the hybrid-TDOA real data (``recNN.npz`` of ``../shared/data/hybrid_tdoa_real``): ``tdoa_s``,
+      ``tdoa_m_arr2/3``, ``S``, ``dt``; ``mics`` are global mic numbers (0-17), the first one of array 1
+      (the reference; default: the authors' 6-mic case ``i = j = k = 1``).
+    """
+    path = Path(path)
+    if not path.exists():
+        raise InputFileError(f"Measurement file {path} does not exist.")
+    try:
+        if path.suffix.lower() == ".json":
+            data = {k: (np.array(v, dtype=float) if isinstance(v, list) and k != "device_names" else v)
+                    for k, v in json.loads(path.read_text()).items()}
+        else:
+            with np.load(path, allow_pickle=False) as z:
+                data = {k: z[k] for k in z.files}
+    except (OSError, ValueError, json.JSONDecodeError) as err:
+        raise InputFileError(f"Measurement file {path} cannot be read ({err}).") from None
+    try:
+        if "tdoa_m_arr2" in data:
+            return _shared_measurements(data, path, mics, sigma_tdoa_s, sigma_odo_m)
+        return _own_measurements(data, path, sigma_tdoa_s, sigma_odo_m)
+    except KeyError as err:
+        raise InputFileError(f"Measurement file {path} lacks the entry {err}; see `adhoc-array calibrate -h` "
+                             "for the format.") from None
+    except ValueError as err:
+        raise InputFileError(f"Measurement file {path} is inconsistent: {err}.") from None
+
+
+def _own_measurements(d: dict, path: Path, sigma_tdoa_s, sigma_odo_m) -> Measurements:
+    tm = np.asarray(d["tdoa_mics_s"], float)
+    te = d.get("tdoa_events_s")
+    te = None if te is None or np.size(te) == 0 else np.asarray(te, float)
+    problem = estimators.HybridTdoaProblem(
+        tdoa_events_s=te, tdoa_mics_s=tm, odometry_m=np.asarray(d["odometry_m"], float),
+        interval_s=np.asarray(d["interval_s"], float),
+        sigma_tdoa_s=float(sigma_tdoa_s if sigma_tdoa_s is not None else d["sigma_tdoa_s"]),
+        sigma_odo_m=float(sigma_odo_m if sigma_odo_m is not None else d["sigma_odo_m"]),
+        speed_of_sound_m_s=float(d.get("speed_of_sound_m_s", estimators.SPEED_OF_SOUND_M_S)),
+        sigma_tdoa_mics_s=(float(d["sigma_tdoa_mics_s"]) if d.get("sigma_tdoa_mics_s") is not None
+                           and sigma_tdoa_s is None else None))
+    truth = d.get("truth_positions_m")
+    names = d.get("device_names")
+    names = tuple(str(s) for s in np.asarray(names).tolist()) if names is not None else \
+        tuple(f"dev{i}" for i in range(problem.n_mics))
+    return Measurements(problem, None if truth is None else np.asarray(truth, float), names, str(path))
+
+
+def _shared_measurements(d: dict, path: Path, mics, sigma_tdoa_s, sigma_odo_m) -> Measurements:
+    glob = list(SHARED_DEFAULT_MICS if mics is None else mics)
+    if len(glob) < 3 or len(set(glob)) != len(glob) or not all(0 <= g < 18 for g in glob):
+        raise ValueError(f"mics={glob} must be >= 3 distinct global mic numbers in 0..17")
+    ref = glob[0]
+    if ref >= 6:
+        raise ValueError(f"the first mic ({ref}) must belong to array 1 (0..5): TDOA-M exists only against it")
+    n_ev = d["tdoa_s"].shape[0] + 1
+    tm = np.full((n_ev, len(glob)), np.nan)
+    for col, g in enumerate(glob):
+        if 6 <= g < 12:
+            tm[:, col] = d["tdoa_m_arr2"][ref, g - 6]
+        elif g >= 12:
+            tm[:, col] = d["tdoa_m_arr3"][ref, g - 12]
+    problem = estimators.HybridTdoaProblem(
+        tdoa_events_s=d["tdoa_s"][:, glob], tdoa_mics_s=tm, odometry_m=np.diff(d["S"], axis=0),
+        interval_s=d["dt"][1:], sigma_tdoa_s=float(sigma_tdoa_s if sigma_tdoa_s is not None else d["sigma_tdoa"]),
+        sigma_odo_m=float(sigma_odo_m if sigma_odo_m is not None else d["sigma_odo"]),
+        speed_of_sound_m_s=float(d["c"]))
+    names = tuple(f"a{g // 6 + 1}m{g % 6 + 1}" for g in glob)
+    return Measurements(problem, np.asarray(d["mic_pos_s"], float)[glob], names, str(path))
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Solving: problem -> Geometry (pure; runs in the worker)
+# ----------------------------------------------------------------------------------------------------------------
+def solve_geometry(problem: estimators.HybridTdoaProblem, *, method: Method = "hybrid",
+                   rng: np.random.Generator | int | None = 0, reference_onsets_s: np.ndarray | None = None,
+                   solved_at_time_s: float = float("nan"), first_event: int = 0,
+                   device_names: Sequence[str] = ()) -> Geometry:
+    """Solve one hybrid-TDOA problem and express it as a :class:`Geometry` with CRLB standard deviations.
+
+    Parameters
+    ----------
+    reference_onsets_s : ndarray, shape (K,), optional
+        Chirp arrivals on device 0's clock; they fix ``epoch_clock_s`` (device 0's clock at the emission of
+        event 0: ``median_j(T_0j - |x_0 - s_j| / c - (1 + delta_0) t_j)``). Without them it is 0.
+
+    When the residuals of a converged solve are well below the assumed TDOA noise, it is solved again from
+    its estimate with the noise re-estimated from the residuals (Appendix B; at most ``ADAPT_PASSES`` times):
+    the solver's robust scale and stopping rules follow the assumed noise. Standard deviations are the CRLB at
+    the estimate with the TDOA noise re-estimated from the residuals when that is possible, else with the
+    problem's own sigmas.
+    """
+    t0 = time.perf_counter()
+    prior_sigma_s = problem.sigma_events_s
+    res = estimators.solve_hybrid_tdoa(problem, method=method, rng=rng)
+    for _ in range(ADAPT_PASSES):
+        # an assumed TDOA noise far above the residuals stops the solver early (its robust scale and
+        # plausibility tests follow sigma): re-solve from the estimate with the noise re-estimated (Appendix B)
+        if res.verdict != "converged":
+            break
+        noise = estimators.estimate_noise_levels(_without_outliers(problem, res), res.scene)
+        s_ev = noise.tdoa_events_std_s if method == "hybrid" else noise.tdoa_mics_std_s
+        s_mi = noise.tdoa_mics_std_s
+        if not (np.isfinite(s_ev) and np.isfinite(s_mi)) or max(s_ev, s_mi) > 0.5 * problem.sigma_events_s:
+            break
+        sharper = dataclasses.replace(problem, sigma_tdoa_s=max(float(s_ev), MIN_SIGMA_TDOA_S),
+                                      sigma_tdoa_mics_s=max(float(s_mi), MIN_SIGMA_TDOA_S))
+        again = estimators.solve_hybrid_tdoa(sharper, method=method, init=res.scene, rng=rng)
+        if again.verdict != "converged":
+            break
+        problem, res = sharper, again
+    solve_s = time.perf_counter() - t0
+    n, c = problem.n_mics, problem.speed_of_sound_m_s
+    delta = res.drifts_ppm * 1e-6
+    ratio = (1.0 + delta) / (1.0 + delta[0])
+    std_pos = np.full(n, np.nan)
+    std_off = np.full(n, np.nan)
+    std_drift = np.full(n, np.nan)
+    sigma = problem.sigma_events_s
+    if res.verdict != "diverged" and np.all(np.isfinite(res.mic_positions_m)):
+        try:
+            clean = _without_outliers(problem, res)
+            s_ev, s_mi, sigma = _noise_for_bounds(clean, res.scene, method, prior_s=prior_sigma_s)
+            p = dataclasses.replace(clean, sigma_tdoa_s=s_ev, sigma_tdoa_mics_s=s_mi)
+            cr = estimators.crlb(p, res.scene, method=method)
+            v = np.diag(cr.mic_frame_covariance)
+            std_pos = np.asarray(cr.per_mic_location_std_m, float)
+            std_off = np.sqrt(np.maximum(v[3 * n:4 * n], 0.0))
+            std_drift = np.sqrt(np.maximum(v[4 * n:5 * n], 0.0)) * 1e6
+        except (np.linalg.LinAlgError, ValueError, FloatingPointError) as err:
+            log.debug("CRLB at the estimate failed: %s", err)
+    epoch = 0.0
+    if reference_onsets_s is not None:
+        on = np.asarray(reference_onsets_s, float)
+        d0 = np.linalg.norm(res.event_positions_m - res.mic_positions_m[0], axis=1)
+        e = on - d0 / c - (1.0 + delta[0]) * problem.emission_times_s
+        if np.any(np.isfinite(e)):
+            epoch = float(np.nanmedian(e))
+    odo = np.nan_to_num(problem.odometry_m)
+    path = np.vstack([np.zeros((1, 3)), np.cumsum(odo, axis=0)])
+    return Geometry(
+        positions_m=res.mic_positions_m, position_std_m=std_pos, offsets_s=res.offsets_s - res.offsets_s[0],
+        offset_std_s=std_off, drifts_ppm=(ratio - 1.0) * 1e6, drift_std_ppm=std_drift, verdict=res.verdict,
+        n_events=problem.n_events, solved_at_time_s=solved_at_time_s, epoch_clock_s=epoch, method=method,
+        emitter_drift_ppm=float(res.drifts_ppm[0]) if method == "hybrid" else float("nan"),
+        event_positions_m=res.event_positions_m, odometry_path_m=path, residual_scale=res.residual_scale,
+        sigma_tdoa_s=sigma, solve_time_s=solve_s, first_event=first_event, device_names=tuple(device_names))
+
+
+def _without_outliers(problem: estimators.HybridTdoaProblem,
+                      res: estimators.CalibrationResult) -> estimators.HybridTdoaProblem:
+    """The problem without the TDOAs the solver rejected as gross mis-detections (NaN), for noise estimates."""
+    te = problem.tdoa_events_s
+    if te is not None and res.outliers_tdoa_events.shape == te.shape:
+        te = np.where(res.outliers_tdoa_events, np.nan, te)
+    tm = np.where(res.outliers_tdoa_mics, np.nan, problem.tdoa_mics_s)
+    return dataclasses.replace(problem, tdoa_events_s=te, tdoa_mics_s=tm)
+
+
+def _noise_for_bounds(problem: estimators.HybridTdoaProblem, scene: estimators.Scene, method: str, *,
+                      prior_s: float) -> tuple[float, float, float]:
+    """TDOA noise (TDOA-S, TDOA-M, the one reported) for the CRLB at an estimate.
+
+    The residual estimate (Appendix B) is scaled by ``sqrt(n_meas / dof)`` for the parameters the fit used, then
+    pooled with the assumed noise ``prior_s`` as ``PRIOR_DOF`` degrees of freedom of evidence,
+    ``sigma^2 = (dof s^2 + PRIOR_DOF prior^2) / (dof + PRIOR_DOF)``: with few events the residuals say little
+    (an exactly determined fit has none), and the bound must not claim precision the data cannot give.
+    """
+    k, n = problem.n_events, problem.n_mics
+    n_s = int(np.isfinite(problem.tdoa_events_s).sum()) if (method == "hybrid" and problem.tdoa_events_s is
+                                                             not None) else 0
+    n_m = int(np.isfinite(problem.tdoa_mics_s[:, 1:]).sum())
+    n_o = 3 * int(np.all(np.isfinite(problem.odometry_m), axis=1).sum())
+    n_par = 3 * n + (n - 1) + (n if method == "hybrid" else n - 1) + 3 * k - 6
+    dof = max(n_s + n_m + n_o - n_par, 0)
+    noise = estimators.estimate_noise_levels(problem, scene)
+    scale = math.sqrt((n_s + n_m + n_o) / dof) if dof else 0.0
+
+    def pool(est: float) -> float:
+        est = est * scale if np.isfinite(est) else 0.0
+        return math.sqrt((dof * est * est + PRIOR_DOF * prior_s * prior_s) / (dof + PRIOR_DOF))
+
+    s_mi = pool(noise.tdoa_mics_std_s)
+    s_ev = pool(noise.tdoa_events_std_s) if method == "hybrid" else s_mi
+    return s_ev, s_mi, s_ev
+
+
+@dataclasses.dataclass(frozen=True)
+class CalibrationSnapshot:
+    """Everything one solve needs, copied out of the stream (immutable; safe to hand to a worker).
+
+    Attributes
+    ----------
+    onsets_s : ndarray, shape (K, N)
+        Arrival of chirp ``first_event + j`` on device ``i``'s clock, seconds; NaN = not detected.
+    odometry_m : ndarray, shape (K-1, 3)
+    interval_s : ndarray, shape (K-1,)
+    first_event : int
+        Session index of row 0 (older events were dropped).
+    time_s : float
+        Stream time (device 0's clock) when the snapshot was taken.
+    """
+
+    onsets_s: np.ndarray
+    odometry_m: np.ndarray
+    interval_s: np.ndarray
+    first_event: int
+    time_s: float
+    sigma_tdoa_s: float
+    sigma_odo_m: float
+    method: Method = "hybrid"
+    speed_of_sound_m_s: float = estimators.SPEED_OF_SOUND_M_S
+    device_names: tuple[str, ...] = ()
+
+    def __post_init__(self) -> None:
+        for name in ("onsets_s", "odometry_m", "interval_s"):
+            a = np.array(getattr(self, name), float, copy=True)
+            a.setflags(write=False)
+            object.__setattr__(self, name, a)
+
+    @property
+    def n_events(self) -> int:
+        return int(self.onsets_s.shape[0])
+
+    @property
+    def n_devices(self) -> int:
+        return int(self.onsets_s.shape[1])
+
+
+def calibrate(snapshot: CalibrationSnapshot, *, rng: np.random.Generator | int | None = 0) -> Geometry:
+    """Solve a snapshot of the stream's chirp onsets and odometry (the worker's function; pure).
+
+    TDOA-S ``onsets[j+1, i] - onsets[j, i]`` (eq. 5) and TDOA-M ``onsets[j, i] - onsets[j, 0]`` (eq. 6).
+    Devices with fewer than ``MIN_DETECTIONS`` chirps are left out (NaN rows in the geometry).
+    """
+    on = snapshot.onsets_s
+    n = snapshot.n_devices
+    counts = np.sum(np.isfinite(on), axis=0)
+    use = np.flatnonzero(counts >= MIN_DETECTIONS)
+    if counts[0] < MIN_DETECTIONS:
+        raise CalibrationError(f"device 0 (the reference) heard only {int(counts[0])} of {snapshot.n_events} "
+                               "chirps")
+    if len(use) < 3:
+        raise CalibrationError(f"only {len(use)} devices heard at least {MIN_DETECTIONS} chirps; 3 are needed")
+    sub = on[:, use]
+    tdoa_m = sub - sub[:, :1]
+    tdoa_m[:, 0] = np.nan
+    problem = estimators.HybridTdoaProblem(
+        tdoa_events_s=np.diff(sub, axis=0), tdoa_mics_s=tdoa_m, odometry_m=snapshot.odometry_m,
+        interval_s=snapshot.interval_s, sigma_tdoa_s=snapshot.sigma_tdoa_s, sigma_odo_m=snapshot.sigma_odo_m,
+        speed_of_sound_m_s=snapshot.speed_of_sound_m_s)
+    names = [snapshot.device_names[i] for i in use] if snapshot.device_names else []
+    g = solve_geometry(problem, method=snapshot.method, rng=rng, reference_onsets_s=sub[:, 0],
+                       solved_at_time_s=snapshot.time_s, first_event=snapshot.first_event, device_names=names)
+    if len(use) == n:
+        return g
+
+    def full(a, fill=np.nan):
+        out = np.full((n,) + a.shape[1:], fill)
+        out[use] = a
+        return out
+
+    return dataclasses.replace(
+        g, positions_m=full(g.positions_m), position_std_m=full(g.position_std_m), offsets_s=full(g.offsets_s),
+        offset_std_s=full(g.offset_std_s), drifts_ppm=full(g.drifts_ppm), drift_std_ppm=full(g.drift_std_ppm),
+        device_names=snapshot.device_names)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Per-device clock bookkeeping and rate changes
+# ----------------------------------------------------------------------------------------------------------------
+class ClockMap:
+    """Working-rate sample index ``m`` of one device's conditioned stream -> that device's clock ``c`` (s).
+
+    Piecewise linear, one segment per rate ratio: ``c = c_k + (m - m_k) * ratio_k / working_rate_hz`` for
+    ``m_k <= m < m_{k+1}``; the last segment extends to +inf (and the first to -inf).
+    """
+
+    def __init__(self, working_rate_hz: float) -> None:
+        self.working_rate_hz = float(working_rate_hz)
+        self.start_index = [0]
+        self.start_clock_s = [0.0]
+        self.ratio = [1.0]
+
+    def append(self, start_index: int, start_clock_s: float, ratio: float) -> None:
+        if start_index < self.start_index[-1]:
+            raise ValueError(f"{start_index=} must not precede the last segment ({self.start_index[-1]})")
+        if start_index == self.start_index[-1]:
+            self.start_index.pop(), self.start_clock_s.pop(), self.ratio.pop()
+        self.start_index.append(int(start_index))
+        self.start_clock_s.append(float(start_clock_s))
+        self.ratio.append(float(ratio))
+
+    def clock_s(self, index):
+        """Clock (seconds) of working-rate sample index (scalar or array, fractional allowed)."""
+        m = np.asarray(index, float)
+        k = np.clip(np.searchsorted(self.start_index, m, side="right") - 1, 0, None)
+        m0 = np.asarray(self.start_index, float)[k]
+        out = np.asarray(self.start_clock_s)[k] + (m - m0) * np.asarray(self.ratio)[k] / self.working_rate_hz
+        return float(out) if out.ndim == 0 else out
+
+    def index_of(self, clock_s):
+        """Inverse of :meth:`clock_s` (clock increases with the index)."""
+        c = np.asarray(clock_s, float)
+        k = np.clip(np.searchsorted(self.start_clock_s, c, side="right") - 1, 0, None)
+        out = (np.asarray(self.start_index, float)[k] + (c - np.asarray(self.start_clock_s)[k])
+               * self.working_rate_hz / np.asarray(self.ratio)[k])
+        return float(out) if out.ndim == 0 else out
+
+
+class RetunableConditioner:
+    """A :class:`DeviceConditioner` whose ``rate_ratio`` can change mid-stream without a glitch.
+
+    A rate change builds a new conditioner with the new ratio, primes it with the last ``HISTORY_S`` of input
+    and drops its outputs up to the clock of the next sample the old one would have produced: the output is
+    continuous to within the resampler's accuracy (about -95 dB) and the :class:`ClockMap` gets an exact new
+    segment (the phase jump is under half a sample and is in the map). Without rate changes it is exactly the
+    wrapped conditioner.
+    """
+
+    def __init__(self, sample_rate_hz: float, *, working_rate_hz: float, rate_ratio: float = 1.0,
+                 keep_history: bool = False) -> None:
+        self.sample_rate_hz = float(sample_rate_hz)
+        self.working_rate_hz = float(working_rate_hz)
+        self.inner = DeviceConditioner(sample_rate_hz, working_rate_hz=working_rate_hz, rate_ratio=rate_ratio)
+        self.clock = ClockMap(working_rate_hz)
+        if rate_ratio != 1.0:
+            self.clock.ratio[0] = float(rate_ratio)
+        self.n_in = 0
+        self.n_out = 0
+        self.ended = False
+        self.n_retunes = 0
+        self._history_len = max(4096, int(HISTORY_S * sample_rate_hz)) if keep_history else 0
+        self._history = np.zeros(0, np.float32)
+        self._carry = np.zeros(0, np.float32)
+        self._skip = 0
+
+    @property
+    def counters(self) -> DeviceCounters:
+        return self.inner.counters
+
+    @property
+    def rate_ratio(self) -> float:
+        return self.inner.rate_ratio
+
+    def process(self, frame: Frame) -> tuple[np.ndarray, FrameFlag]:
+        """Samples at the working rate (float32) and flags, as :meth:`DeviceConditioner.process`."""
+        if self._history_len:
+            x = np.where(np.isfinite(frame.samples), frame.samples, np.float32(0.0)).astype(np.float32)
+            self._history = np.concatenate([self._history, x])[-self._history_len:]
+        self.n_in += len(frame.samples)
+        y, flags = self.inner.process(frame)
+        if self._skip:
+            k = min(self._skip, len(y))
+            y, self._skip = y[k:], self._skip - k
+        if len(self._carry):
+            y, self._carry = np.concatenate([self._carry, y]), np.zeros(0, np.float32)
+        self.n_out += len(y)
+        if flags & FrameFlag.LAST:
+            self.ended = True
+        return y, flags
+
+    def retune(self, rate_ratio: float) -> None:
+        """Use ``rate_ratio`` from the next output sample on (effective with the next :meth:`process`)."""
+        if not self._history_len:
+            raise RuntimeError("this conditioner keeps no input history (keep_history=False); it cannot retune")
+        q = float(rate_ratio)
+        if not (np.isfinite(q) and 0.5 < q < 2.0):
+            raise ValueError(f"{rate_ratio=} must be a clock rate ratio near 1")
+        if self.ended or q == self.rate_ratio:
+            return
+        fs, fd = self.working_rate_hz, self.sample_rate_hz
+        c_target = self.clock.clock_s(self.n_out)             # clock of the next output under the old ratio
+        n_p = self.n_in - len(self._history)                   # input index of the first primed sample
+        j0 = max(0, int(math.ceil((c_target - n_p / fd) * fs / q - 0.5)))
+        new = DeviceConditioner(fd, working_rate_hz=fs, rate_ratio=q)
+        counters = self.inner.counters
+        y, _ = new.process(Frame(0, 0, n_p, fd, self._history.copy()))
+        new.counters = counters                                # priming is not new input
+        self.inner = new
+        self.clock.append(self.n_out, n_p / fd + j0 * q / fs, q)
+        k = min(j0, len(y))
+        self._carry, self._skip = y[k:].astype(np.float32), j0 - k
+        self.n_retunes += 1
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Streaming chirp detection
+# ----------------------------------------------------------------------------------------------------------------
+@dataclasses.dataclass(frozen=True)
+class ChirpDetection:
+    """One chirp heard by one device.
+
+    Attributes
+    ----------
+    device_id : int
+    onset_samples : float
+        Matched-filter onset as a working-rate sample index of the device's conditioned stream.
+    clock_s : float
+        The same instant on the device's own clock (through its :class:`ClockMap`), seconds.
+    snr : float
+        Envelope peak over the robust noise level of the matched-filter output.
+    """
+
+    device_id: int
+    onset_samples: float
+    clock_s: float
+    snr: float
+
+
+def _parabolic(y: np.ndarray, k: int) -> float:
+    if k <= 0 or k >= len(y) - 1:
+        return 0.0
+    a, b, c = y[k - 1], y[k], y[k + 1]
+    den = a - 2 * b + c
+    return float(0.5 * (a - c) / den) if den < 0 else 0.0
+
+
+class ChirpDetector:
+    """Matched filter for a known chirp on one device's conditioned stream, in fixed blocks (overlap-save).
+
+    Any split of the input gives the same detections (the FFT blocks do not depend on it). Per block of
+    ``block_samples`` (about 3 template lengths): one real FFT, one complex inverse FFT of the analytic
+    correlation (its magnitude is the envelope, its real part the exact correlation), a median for the noise
+    level (the median of the last ``noise_blocks`` block medians), and peak picking: envelope peaks above
+    ``threshold`` x ``1.4826`` x noise, the largest within ``min_separation_s``; then the first arrival: the
+    earliest envelope peak at most ``first_arrival_s`` before it and at least ``first_arrival_ratio`` of it (a
+    reflection off a nearby surface can beat the direct path); the onset is the sub-sample maximum of the
+    correlation within 1 ms of that peak (as :func:`estimators.detect_chirps`). Memory is bounded: one FFT
+    block of input, two blocks (plus the look-back) of correlation, ``noise_blocks`` medians.
+    """
+
+    def __init__(self, template: np.ndarray, *, sample_rate_hz: float, min_separation_s: float,
+                 threshold: float = 10.0, noise_blocks: int = 8, first_arrival_s: float = 0.02,
+                 first_arrival_ratio: float = 0.5) -> None:
+        h = np.asarray(template, float)
+        if h.ndim != 1 or len(h) < 8:
+            raise ValueError(f"template shape {h.shape} must be 1-D with >= 8 samples")
+        if not min_separation_s > 0:
+            raise ValueError(f"{min_separation_s=} must be > 0 s")
+        self.sample_rate_hz = float(sample_rate_hz)
+        self.template_samples = len(h)
+        self.nfft = max(1024, 1 << int(math.ceil(math.log2(4 * len(h)))))
+        self.block_samples = self.nfft - len(h) + 1
+        u = np.zeros(self.nfft)
+        u[0] = 1.0
+        u[1:self.nfft // 2] = 2.0
+        u[self.nfft // 2] = 1.0
+        self._filter = np.conj(np.fft.fft(h, self.nfft)) * u     # analytic correlation in one inverse FFT
+        self.threshold = float(threshold)
+        self.separation_samples = max(1, int(min_separation_s * sample_rate_hz))
+        self._half = max(2, int(0.001 * sample_rate_hz))
+        self._lookback = int(first_arrival_s * sample_rate_hz)
+        self.first_arrival_ratio = float(first_arrival_ratio)
+        self._floor = 1e-9 * float(np.sqrt(np.sum(h * h)))
+        self._medians: collections.deque = collections.deque(maxlen=noise_blocks)
+        self._buf = np.zeros(0, np.float64)   # input from index self._buf_start on
+        self._buf_start = 0
+        self._corr = np.zeros(0)              # real correlation of the last two blocks (+ the look-back)
+        self._env = np.zeros(0)               # its envelope
+        self._corr_start = 0
+        self.processed = 0                    # correlation computed for onsets < processed
+        self._pending: list | None = None     # [index, envelope, onset or None, snr]
+        self.ended = False
+
+    @property
+    def final_before(self) -> float:
+        """Onsets below this index are final: a later detection cannot replace them."""
+        return math.inf if self.ended else float(self.processed - self.separation_samples - self._half)
+
+    def process(self, samples: np.ndarray, *, last: bool = False) -> list[tuple[float, float]]:
+        """Feed conditioned samples (the next ones of the device's stream); return ``(onset_samples, snr)`` of
+        the chirps that became final."""
+        out: list[tuple[float, float]] = []
+        if len(samples):
+            self._buf = np.concatenate([self._buf, np.asarray(samples, np.float64)])
+        while len(self._buf) >= self.nfft:
+            self._block(self._buf[:self.nfft], out, self.block_samples)
+        if last and not self.ended:
+            n_valid = len(self._buf)
+            self._buf = np.concatenate([self._buf, np.zeros(self.nfft)])
+            while n_valid > 0:
+                self._block(self._buf[:self.nfft], out, min(n_valid, self.block_samples))
+                n_valid -= self.block_samples
+            self._buf = np.zeros(0)
+            self.ended = True
+            self._finalise(out, force=True)
+        return out
+
+    def _block(self, seg: np.ndarray, out: list, n_onsets: int) -> None:
+        """Correlation for the onsets ``[start, start + n_onsets)`` from ``seg`` (nfft samples from start)."""
+        half = np.fft.rfft(seg, self.nfft)
+        spec = np.zeros(self.nfft, complex)
+        spec[:len(half)] = half
+        z = np.fft.ifft(spec * self._filter)[:n_onsets]
+        env = np.abs(z)
+        start = self._buf_start
+        self._buf = self._buf[self.block_samples:]
+        self._buf_start += self.block_samples
+        self._medians.append(float(np.median(env)))
+        noise = max(1.4826 * float(np.median(self._medians)), self._floor)
+        keep = self.block_samples + self._lookback
+        self._corr = np.concatenate([self._corr[-keep:], z.real])
+        self._env = np.concatenate([self._env[-keep:], env])
+        self._corr_start = start + n_onsets - len(self._corr)
+        above = np.flatnonzero(env > self.threshold * noise)
+        if len(above):
+            left = np.r_[-np.inf, env[:-1]][above]
+            right = np.r_[env[1:], -np.inf][above]
+            for i in above[(env[above] >= left) & (env[above] >= right)]:
+                n = start + int(i)
+                p = self._pending
+                if p is not None and n - p[0] > self.separation_samples:
+                    self._emit(out)
+                    p = None
+                if p is None or env[i] > p[1]:
+                    self._pending = [n, float(env[i]), None, float(env[i] / noise)]
+        self.processed = start + n_onsets
+        self._finalise(out)
+
+    def _finalise(self, out: list, *, force: bool = False) -> None:
+        p = self._pending
+        if p is None:
+            return
+        if p[2] is None and (p[0] + self._half < self.processed or force):
+            self._refine(p)
+        if force or p[0] + self.separation_samples < self.processed:
+            self._emit(out)
+
+    def _emit(self, out: list) -> None:
+        p, self._pending = self._pending, None
+        if p[2] is None:
+            self._refine(p)
+        out.append((float(p[2]), float(p[3])))
+
+    def _refine(self, p: list) -> None:
+        """First arrival before the envelope peak, then the sub-sample maximum of the correlation near it."""
+        b0 = self._corr_start
+        lo = max(p[0] - self._lookback - b0, 1)
+        hi = min(p[0] - b0, len(self._env) - 1)
+        peak = p[0]
+        if hi > lo:
+            e = self._env
+            w = np.arange(lo, hi)
+            cand = w[(e[w] >= e[w - 1]) & (e[w] >= e[w + 1]) & (e[w] >= self.first_arrival_ratio * p[1])]
+            if len(cand):
+                peak = b0 + int(cand[0])
+        lo = max(peak - self._half - b0, 0)
+        hi = min(peak + self._half + 1 - b0, len(self._corr))
+        if hi > lo:
+            seg = self._corr[lo:hi]
+            k = int(np.argmax(seg))
+            p[2] = b0 + lo + k + _parabolic(seg, k)
+        else:  # pragma: no cover - the correlation buffer always covers a pending peak
+            p[2] = float(peak)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Observations: detections + schedule -> snapshots
+# ----------------------------------------------------------------------------------------------------------------
+class CalibrationObservations:
+    """Chirp detections of every device (bounded, drop-oldest) and their assignment to scheduled events.
+
+    Assignment (at snapshot time): each detection is moved to device 0's clock with the stream's current clock
+    relation ``delta_s[i] = c_i - c_0`` (coarse alignment, or the last geometry), the reference-clock time of
+    event 0 is found by matching the detections to the schedule (most matched detections; on a tie the
+    earliest: the first chirp heard is event 0), refined with a linear fit (device 0 vs the beacon's clock),
+    and each device's nearest detection within ``ASSIGN_TOLERANCE_S`` of each scheduled event is taken.
+    """
+
+    def __init__(self, n_devices: int, odometry: OdometryLog, *, max_detections: int = 1024) -> None:
+        self.n_devices = n_devices
+        self.odometry = odometry
+        self.detections = [collections.deque(maxlen=max_detections) for _ in range(n_devices)]
+        self.final_clock_s = np.full(n_devices, -np.inf)
+        self.n_detections = np.zeros(n_devices, dtype=np.int64)
+        self._event0_s: float | None = None   # kept once found: event numbers never change
+        self._rate = 1.0
+
+    def add(self, det: ChirpDetection) -> None:
+        self.detections[det.device_id].append(det)
+        self.n_detections[det.device_id] += 1
+
+    def assign(self, delta_s: np.ndarray) -> tuple[np.ndarray, float, float]:
+        """Onsets (K_sched, N) on each device's clock (NaN = missed), event 0's reference-clock time ``a`` and
+        the reference clock's rate against the schedule ``1 + s``. ``K_sched`` = odometry steps + 1."""
+        _, iv = self.odometry.snapshot()
+        sched = np.concatenate([[0.0], np.cumsum(iv)])
+        k = len(sched)
+        onsets = np.full((k, self.n_devices), np.nan)
+        r_list, d_list = [], []
+        for i, dq in enumerate(self.detections):
+            if np.isfinite(delta_s[i]):
+                r_list += [d.clock_s - delta_s[i] for d in dq]
+                d_list += [i] * len(dq)
+        if not r_list:
+            return onsets, math.nan, 1.0
+        r = np.asarray(r_list)
+        if self._event0_s is not None:
+            a, s = self._event0_s, self._rate - 1.0
+        else:
+            a, s = self._find_event0(r, np.asarray(d_list), sched), 0.0
+            if not np.isfinite(a):
+                return onsets, math.nan, 1.0
+        tol = ASSIGN_TOLERANCE_S + (MAX_DRIFT * sched if self._event0_s is None else 0.0)
+        for _ in range(2):  # refit a and the rate of device 0's clock against the schedule
+            pred = a + (1.0 + s) * sched
+            j = np.clip(np.searchsorted(pred, r), 1, max(k - 1, 1))
+            j = np.where(np.abs(r - pred[j - 1]) < np.abs(r - pred[np.minimum(j, k - 1)]), j - 1,
+                         np.minimum(j, k - 1))
+            ok = np.abs(r - pred[j]) < (tol[j] if np.ndim(tol) else tol)
+            n_events = len(np.unique(j[ok]))
+            if n_events >= 2:
+                coef = np.polyfit(sched[j[ok]], r[ok], 1)
+                s, a = float(np.clip(coef[0] - 1.0, -MAX_DRIFT, MAX_DRIFT)), float(coef[1])
+                if n_events < 3:
+                    s = 0.0
+                    a = float(np.median(r[ok] - sched[j[ok]]))
+        if n_events >= MIN_EVENTS_TO_NUMBER:  # confident: the event numbering is kept from now on
+            self._event0_s, self._rate = a, 1.0 + s
+        pred = a + (1.0 + s) * sched
+        for i, dq in enumerate(self.detections):
+            if not np.isfinite(delta_s[i]) or not dq:
+                continue
+            c = np.array([d.clock_s for d in dq])
+            err = np.abs((c - delta_s[i])[:, None] - pred[None, :])         # (D_i, K)
+            best = np.argmin(err, axis=0)
+            ok = err[best, np.arange(k)] < ASSIGN_TOLERANCE_S
+            onsets[ok, i] = c[best[ok]]
+        return onsets, a, 1.0 + s
+
+    @staticmethod
+    def _find_event0(r: np.ndarray, dev: np.ndarray, sched: np.ndarray) -> float:
+        """Reference-clock time of event 0: detections within ``ASSIGN_TOLERANCE_S`` of each other form one
+        heard chirp (weighted by its number of devices); every (chirp, scheduled event) pair proposes an event-0
+        time; the one matching the most weight (within the tolerance plus ``MAX_DRIFT`` of the schedule time)
+        wins, on a tie the latest (the first chirp heard is event 0)."""
+        order = np.argsort(r)
+        r, dev = r[order], dev[order]
+        cut = np.flatnonzero(np.diff(r) > ASSIGN_TOLERANCE_S) + 1
+        groups = np.split(np.arange(len(r)), cut)
+        centre = np.array([np.median(r[g]) for g in groups])
+        weight = np.array([len(np.unique(dev[g])) for g in groups], float)
+        cand = np.unique(np.round((centre[:, None] - sched[None, :]).ravel(), 4))
+        best_a, best_w = math.nan, 0.0
+        k = len(sched)
+        for chunk in np.array_split(cand, max(1, len(cand) * len(centre) // 2_000_000 + 1)):
+            rel = centre[None, :] - chunk[:, None]                         # (C, G)
+            j = np.clip(np.searchsorted(sched, rel), 1, max(k - 1, 1))
+            jn = np.where(np.abs(rel - sched[j - 1]) < np.abs(rel - sched[np.minimum(j, k - 1)]), j - 1,
+                          np.minimum(j, k - 1))
+            near = np.abs(rel - sched[jn]) < ASSIGN_TOLERANCE_S + MAX_DRIFT * sched[jn]
+            w = near.astype(float) @ weight
+            top = float(np.max(w))
+            a_top = float(np.max(chunk[w == top]))
+            if top > best_w or (top == best_w and a_top > best_a):
+                best_w, best_a = top, a_top
+        return best_a
+
+    def snapshot(self, delta_s: np.ndarray, *, time_s: float, n_min: int, max_events: int, sigma_tdoa_s: float,
+                 sigma_odo_m: float, method: Method, speed_of_sound_m_s: float,
+                 device_names: Sequence[str]) -> CalibrationSnapshot | None:
+        """A snapshot of the complete events (every device past them), or None if there are fewer than
+        ``n_min``."""
+        odo, iv = self.odometry.snapshot()
+        if len(iv) < 2 or self.n_detections[0] == 0:
+            return None
+        onsets, a, rate = self.assign(delta_s)
+        if not np.isfinite(a):
+            return None
+        sched = a + rate * np.concatenate([[0.0], np.cumsum(iv)])
+        horizon = np.inf
+        for i in range(self.n_devices):
+            if np.isfinite(delta_s[i]):
+                horizon = min(horizon, self.final_clock_s[i] - delta_s[i])
+        n_complete = int(np.searchsorted(sched + COMPLETE_GUARD_S, horizon))
+        if n_complete < max(n_min, MIN_SOLVE_EVENTS):
+            return None
+        first = max(0, n_complete - max_events)
+        return CalibrationSnapshot(
+            onsets_s=onsets[first:n_complete], odometry_m=odo[first:n_complete - 1],
+            interval_s=iv[first:n_complete - 1], first_event=first, time_s=time_s, sigma_tdoa_s=sigma_tdoa_s,
+            sigma_odo_m=sigma_odo_m, method=method, speed_of_sound_m_s=speed_of_sound_m_s,
+            device_names=tuple(device_names))
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# The stream's calibrator: detection, snapshots, the worker, the swap
+# ----------------------------------------------------------------------------------------------------------------
+@dataclasses.dataclass
+class SolveRecord:
+    """One solve, as reported."""
+
+    snapshot_time_s: float
+    n_events: int
+    first_event: int
+    status: str = "pending"          # pending | adopted | rejected | failed | abandoned
+    verdict: str | None = None
+    solve_time_s: float | None = None
+    wait_s: float | None = None      # submit -> result seen by the stream (wall clock)
+    adopted_at_time_s: float | None = None
+    message: str | None = None
+
+
+class StreamCalibrator:
+    """Periodic recalibration while streaming.
+
+    Parameters
+    ----------
+    n_devices : int
+    template : ndarray, shape (n_template,)
+        The beacon's chirp at the working rate.
+    sample_rate_hz : float
+        Working rate.
+    odometry : OdometryLog
+        Schedule (intervals) and odometry of the beacon.
+    recalibrate_every : int
+        Re-solve every this many new complete events (the first solve after as many).
+    method : {"hybrid", "baseline"}
+    apply : {"drift", "offsets", "none"}
+        What a new geometry changes in the stream: ``drift`` re-tunes each device's resampler to its clock rate
+        and sets its coarse offset from the clock model; ``offsets`` only sets the coarse offsets; ``none``
+        only publishes the geometry.
+    solver : callable, optional
+        ``solver(snapshot) -> Geometry``, run in the worker; default :func:`calibrate`.
+    on_geometry : callable, optional
+        Called on the stream's thread with every adopted geometry (the publish hook: a file now, a zenoh
+        publisher later).
+    executor : {"thread", "process"}
+    max_events : int
+        Solve over at most the last this many events.
+    finish_timeout_s : float
+        At the end of the stream, wait at most this long for a pending solve.
+    """
+
+    def __init__(self, n_devices: int, *, template: np.ndarray, sample_rate_hz: float, odometry: OdometryLog,
+                 recalibrate_every: int = 8, method: Method = "hybrid", apply: Apply = "drift",
+                 sigma_tdoa_s: float = 5e-5, sigma_odo_m: float = 0.01,
+                 speed_of_sound_m_s: float = estimators.SPEED_OF_SOUND_M_S, threshold: float = 10.0,
+                 solver: Callable[[CalibrationSnapshot], Geometry] | None = None,
+                 on_geometry: Callable[[Geometry], None] | None = None,
+                 executor: Literal["thread", "process"] = "thread", max_events: int = 200,
+                 finish_timeout_s: float = 60.0, final_solve: bool = True,
+                 device_names: Sequence[str] = ()) -> None:
+        if n_devices < 3:
+            raise ConfigError(f"calibration needs >= 3 devices; {n_devices=}")
+        if int(recalibrate_every) < 3:
+            raise ConfigError(f"recalibrate_every={recalibrate_every} must be >= 3 events")
+        if method not in ("hybrid", "baseline"):
+            raise ConfigError(f"calibration_method={method!r} must be 'hybrid' or 'baseline'")
+        if apply not in ("drift", "offsets", "none"):
+            raise ConfigError(f"calibration_apply={apply!r} must be 'drift', 'offsets' or 'none'")
+        self.n_devices = n_devices
+        self.sample_rate_hz = float(sample_rate_hz)
+        self.odometry = odometry
+        self.recalibrate_every = int(recalibrate_every)
+        self.method: Method = method
+        self.apply: Apply = apply
+        self.sigma_tdoa_s = float(sigma_tdoa_s)
+        self.sigma_odo_m = float(sigma_odo_m)
+        self.speed_of_sound_m_s = float(speed_of_sound_m_s)
+        self.max_events = int(max_events)
+        self.finish_timeout_s = float(finish_timeout_s)
+        self.final_solve = final_solve
+        self.device_names = tuple(device_names) or tuple(f"dev{i}" for i in range(n_devices))
+        self.solver = solver or calibrate
+        self.on_geometry = on_geometry
+        _, iv = odometry.snapshot()
+        min_sep = 0.5 * float(np.min(iv)) if len(iv) else 0.5
+        min_sep = max(min_sep, 1.2 * len(template) / sample_rate_hz)
+        self.detectors = [ChirpDetector(template, sample_rate_hz=sample_rate_hz, min_separation_s=min_sep,
+                                        threshold=threshold) for _ in range(n_devices)]
+        self.observations = CalibrationObservations(n_devices, odometry)
+        self.clocks: list[ClockMap] | None = None
+        self.geometry: Geometry | None = None          # last good geometry
+        self.history: list[SolveRecord] = []
+        self.messages: list[str] = []
+        self.step_ms: list[float] = []
+        self.finish_wait_s = 0.0                       # waited for solves after the last block (bounded)
+        self._n_solved_events = 0
+        self._next_attempt_s = -math.inf
+        self._future: concurrent.futures.Future | None = None
+        self._record: SolveRecord | None = None
+        self._submitted_at = 0.0
+        self._executor_kind = executor
+        self._executor: concurrent.futures.Executor | None = None
+
+    # wiring ----------------------------------------------------------------------------------
+    def bind(self, clocks: Sequence[ClockMap]) -> None:
+        """Attach each device's clock map (the pipeline's conditioners)."""
+        if len(clocks) != self.n_devices:
+            raise ValueError(f"{len(clocks)=} must equal {self.n_devices=}")
+        self.clocks = list(clocks)
+
+    def _pool(self) -> concurrent.futures.Executor:
+        if self._executor is None:
+            if self._executor_kind == "process":
+                self._executor = concurrent.futures.ProcessPoolExecutor(max_workers=1)
+            else:
+                self._executor = concurrent.futures.ThreadPoolExecutor(max_workers=1,
+                                                                       thread_name_prefix="calibration")
+        return self._executor
+
+    def close(self) -> None:
+        """Stop the worker (a running solve is abandoned)."""
+        if self._executor is not None:
+            self._executor.shutdown(wait=False, cancel_futures=True)
+            self._executor = None
+
+    def __enter__(self) -> "StreamCalibrator":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # the audio path --------------------------------------------------------------------------
+    def observe(self, device_id: int, samples: np.ndarray, *, last: bool = False) -> None:
+        """Conditioned samples of one device (its own clock): run its chirp detector (cheap per hop)."""
+        det = self.detectors[device_id]
+        clock = self.clocks[device_id]
+        for onset, snr in det.process(samples, last=last):
+            self.observations.add(ChirpDetection(device_id, onset, clock.clock_s(onset), snr))
+        fb = det.final_before
+        self.observations.final_clock_s[device_id] = math.inf if fb == math.inf else clock.clock_s(fb)
+
+    def step(self, *, time_s: float,
+             delta_s: np.ndarray | Callable[[], np.ndarray | None] | None) -> Geometry | None:
+        """Once per block, at the frame boundary: collect a finished solve (``future.done()``, never waits) and
+        start the next one when ``recalibrate_every`` new events are complete.
+
+        Parameters
+        ----------
+        time_s : float
+            Stream time of the block (device 0's clock).
+        delta_s : ndarray, shape (n_devices,), or a callable returning it, or None
+            Current clock relation ``c_i - c_0`` of the stream (NaN for a device that is not aligned); None
+            before the coarse alignment. A callable is only evaluated when a snapshot is attempted (at most
+            every ``ATTEMPT_EVERY_S`` of stream time).
+
+        Returns
+        -------
+        Geometry or None
+            A newly adopted (converged) geometry, to apply at this frame boundary.
+        """
+        t0 = time.perf_counter()
+        adopted = None
+        if self._future is not None and self._future.done():
+            adopted = self._collect(time_s)
+        if self._future is None and time_s >= self._next_attempt_s:
+            self._next_attempt_s = time_s + ATTEMPT_EVERY_S
+            delta = delta_s() if callable(delta_s) else delta_s
+            if delta is not None:
+                self._maybe_submit(time_s, delta, n_min=self._n_solved_events + self.recalibrate_every)
+        self.step_ms.append(1e3 * (time.perf_counter() - t0))
+        return adopted
+
+    def finish(self, *, time_s: float, delta_s: np.ndarray | None) -> Geometry | None:
+        """End of stream: a last solve over every new complete event, then wait (bounded) for a pending one."""
+        for d, det in enumerate(self.detectors):
+            if not det.ended:
+                self.observe(d, np.zeros(0, np.float32), last=True)
+        adopted = None
+        if self._future is not None:
+            adopted = self._wait(time_s) or adopted
+        if self.final_solve and delta_s is not None:
+            self._maybe_submit(time_s, delta_s, n_min=self._n_solved_events + 1)
+            if self._future is not None:
+                adopted = self._wait(time_s) or adopted
+        return adopted
+
+    # internals -------------------------------------------------------------------------------
+    def _wait(self, time_s: float) -> Geometry | None:
+        t0 = time.perf_counter()
+        concurrent.futures.wait([self._future], timeout=self.finish_timeout_s)
+        self.finish_wait_s += time.perf_counter() - t0
+        if not self._future.done():
+            rec = self._record
+            rec.status = "abandoned"
+            rec.message = (f"t={time_s:.1f} s: the calibration solve over {rec.n_events} events did not finish "
+                           f"within {self.finish_timeout_s:g} s of the end of the stream; "
+                           f"{self._kept_sentence()}")
+            self._say(rec.message)
+            self._future.cancel()
+            self._future = None
+            return None
+        return self._collect(time_s)
+
+    def _maybe_submit(self, time_s: float, delta_s: np.ndarray, *, n_min: int) -> None:
+        snap = self.observations.snapshot(
+            np.asarray(delta_s, float), time_s=time_s, n_min=n_min, max_events=self.max_events,
+            sigma_tdoa_s=self.sigma_tdoa_s, sigma_odo_m=self.sigma_odo_m, method=self.method,
+            speed_of_sound_m_s=self.speed_of_sound_m_s, device_names=self.device_names)
+        if snap is None:
+            return
+        self._n_solved_events = snap.first_event + snap.n_events
+        self._record = SolveRecord(time_s, snap.n_events, snap.first_event)
+        self.history.append(self._record)
+        self._submitted_at = time.perf_counter()
+        self._future = self._pool().submit(self.solver, snap)
+        log.info("t=%.1f s: calibration solve started over %d events.", time_s, snap.n_events)
+
+    def _kept_sentence(self) -> str:
+        g = self.geometry
+        if g is None:
+            return "there is no good geometry yet, so the stream keeps its own alignment."
+        return f"kept the last good geometry (solved at t={g.solved_at_time_s:.1f} s over {g.n_events} events)."
+
+    def _collect(self, time_s: float) -> Geometry | None:
+        fut, rec = self._future, self._record
+        self._future = None
+        rec.wait_s = time.perf_counter() - self._submitted_at
+        try:
+            g = fut.result()   # re-raises the worker's exception here, on the stream's thread
+        except Exception as err:  # noqa: BLE001 - a failed solve must never stop the stream
+            rec.status = "failed"
+            rec.message = (f"t={time_s:.1f} s: the calibration solve over {rec.n_events} events failed "
+                           f"({type(err).__name__}: {err}); {self._kept_sentence()}")
+            self._say(rec.message)
+            return None
+        rec.verdict = g.verdict
+        rec.solve_time_s = g.solve_time_s
+        if not g.converged:
+            rec.status = "rejected"
+            rec.message = (f"t={time_s:.1f} s: the calibration solve over {rec.n_events} events ended "
+                           f"'{g.verdict}'; {self._kept_sentence()}")
+            self._say(rec.message)
+            return None
+        rec.status = "adopted"
+        rec.adopted_at_time_s = time_s
+        self.geometry = g
+        log.info("t=%.1f s: new geometry adopted (%s).", time_s, g.summary())
+        if self.on_geometry is not None:
+            try:
+                self.on_geometry(g)
+            except Exception as err:  # noqa: BLE001 - publishing is a side output
+                self._say(f"t={time_s:.1f} s: publishing the new geometry failed ({type(err).__name__}: {err}); "
+                          "the stream uses it anyway.")
+        return g
+
+    def _say(self, message: str) -> None:
+        self.messages.append(message)
+        log.warning("%s", message)
+
+    def report(self) -> dict[str, Any]:
+        """The calibration section of report.json."""
+        step = np.asarray(self.step_ms) if self.step_ms else np.zeros(1)
+        solves = [dataclasses.asdict(r) for r in self.history]
+        times = [r.solve_time_s for r in self.history if r.solve_time_s is not None]
+        return {
+            "method": self.method,
+            "apply": self.apply,
+            "recalibrate_every": self.recalibrate_every,
+            "executor": self._executor_kind,
+            "n_detections": self.observations.n_detections.tolist(),
+            "n_solves": len(self.history),
+            "n_adopted": sum(r.status == "adopted" for r in self.history),
+            "solves": solves,
+            "solve_time_s_median": float(np.median(times)) if times else None,
+            "solve_time_s_max": float(np.max(times)) if times else None,
+            "step_ms_median": float(np.median(step)),
+            "step_ms_max": float(np.max(step)),
+            "blocks_waited_on_calibration": 0,   # step() never waits; only finish() does, after the last block
+            "finish_wait_s": self.finish_wait_s,
+            "geometry": self.geometry.to_dict() if self.geometry is not None else None,
+            "messages": list(self.messages),
+        }
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Batch calibration (adhoc-array calibrate)
+# ----------------------------------------------------------------------------------------------------------------
+def _read_mono(path: Path) -> tuple[np.ndarray, float]:
+    import soundfile as sf
+    try:
+        x, rate = sf.read(str(path), dtype="float64", always_2d=True)
+    except (sf.LibsndfileError, RuntimeError, OSError) as err:
+        raise InputFileError(f"{path} is not a readable audio file ({err}).") from None
+    return x.mean(axis=1), float(rate)
+
+
+def calibrate_recordings(paths: Sequence[str | Path], odometry_m: np.ndarray, interval_s: np.ndarray, *,
+                         chirp_duration_s: float, chirp_f0_hz: float, chirp_f1_hz: float,
+                         sigma_tdoa_s: float, sigma_odo_m: float, method: Method = "hybrid",
+                         speed_of_sound_m_s: float = estimators.SPEED_OF_SOUND_M_S,
+                         rng: np.random.Generator | int | None = 0) -> tuple[Geometry, np.ndarray]:
+    """Batch calibration from one recording per device (device 0 first) and the beacon's odometry.
+
+    Chirps are found with :func:`estimators.extract_tdoas` (matched filter, GCC-PHAT refinement, assignment to
+    the schedule). Devices at other rates are resampled to device 0's. Returns the geometry and the onsets
+    (K, N) on each device's clock.
+    """
+    streams, rates = [], []
+    for p in paths:
+        x, r = _read_mono(Path(p))
+        streams.append(x)
+        rates.append(r)
+    fs = rates[0]
+    if any(r != fs for r in rates):
+        import soxr
+        streams = [x if r == fs else soxr.resample(x, r, fs) for x, r in zip(streams, rates)]
+    template = estimators.linear_chirp(duration_s=chirp_duration_s, f0_hz=chirp_f0_hz, f1_hz=chirp_f1_hz,
+                                       sample_rate_hz=fs)
+    ch = estimators.extract_tdoas(streams, template, sample_rate_hz=fs, interval_s=np.asarray(interval_s, float))
+    on = ch.onsets_s
+    counts = np.sum(np.isfinite(on), axis=0)
+    if counts[0] < MIN_DETECTIONS:
+        raise CalibrationError(f"{paths[0]} (device 0) holds only {int(counts[0])} of the {len(on)} scheduled "
+                               "chirps; check the chirp settings and the odometry's intervals.")
+    snap = CalibrationSnapshot(onsets_s=on, odometry_m=odometry_m, interval_s=interval_s, first_event=0,
+                               time_s=float("nan"), sigma_tdoa_s=sigma_tdoa_s, sigma_odo_m=sigma_odo_m,
+                               method=method, speed_of_sound_m_s=speed_of_sound_m_s,
+                               device_names=tuple(Path(p).stem for p in paths))
+    return calibrate(snap, rng=rng), on
+
+
+def run_calibrate(out_dir: str | Path, *, measurements: str | Path | None = None,
+                  audio: Sequence[str | Path] = (), odometry: str | Path | None = None, method: Method = "hybrid",
+                  mics: Sequence[int] | None = None, chirp_interval_s: float | None = None,
+                  chirp_duration_s: float = 0.1, chirp_f0_hz: float = 500.0, chirp_f1_hz: float = 6000.0,
+                  sigma_tdoa_s: float | None = None, sigma_odo_m: float | None = None, seed: int = 0,
+                  plots: bool = True) -> dict[str, Any]:
+    """``adhoc-array calibrate``: solve, write ``geometry.json`` (and ``geometry.png``) in ``out_dir``.
+
+    Returns the summary that is also written to ``calibration.json`` (geometry, errors against the file's
+    ground truth when it has one).
+    """
+    if method not in ("hybrid", "baseline"):
+        raise ConfigError(f"method={method!r} must be 'hybrid' or 'baseline'")
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    truth = None
+    t0 = time.perf_counter()
+    if measurements is not None:
+        if audio:
+            raise ConfigError("Give either --measurements or audio files with --odometry, not both.")
+        m = load_measurements(measurements, mics=mics, sigma_tdoa_s=sigma_tdoa_s, sigma_odo_m=sigma_odo_m)
+        if method == "hybrid" and m.problem.tdoa_events_s is None:
+            raise ConfigError(f"{measurements} has no tdoa_events_s (TDOA-S); use --method baseline.")
+        geometry = solve_geometry(m.problem, method=method, rng=seed, device_names=m.device_names)
+        truth, source = m.truth_positions_m, m.source
+    else:
+        if not audio or odometry is None:
+            raise ConfigError("Give --measurements FILE, or one audio file per device and --odometry FILE.")
+        if len(audio) < 3:
+            raise ConfigError(f"{len(audio)} audio files were given; calibration needs at least 3 devices.")
+        odo, iv = load_odometry_csv(odometry, interval_s=chirp_interval_s)
+        geometry, _ = calibrate_recordings(
+            audio, odo, iv, chirp_duration_s=chirp_duration_s, chirp_f0_hz=chirp_f0_hz, chirp_f1_hz=chirp_f1_hz,
+            sigma_tdoa_s=sigma_tdoa_s if sigma_tdoa_s is not None else 5e-5,
+            sigma_odo_m=sigma_odo_m if sigma_odo_m is not None else 0.01, method=method, rng=seed)
+        source = ", ".join(str(a) for a in audio)
+    wall_s = time.perf_counter() - t0
+    geometry.save(out / "geometry.json")
+    summary: dict[str, Any] = {"source": source, "method": method, "verdict": geometry.verdict,
+                               "n_devices": geometry.n_devices, "n_events": geometry.n_events,
+                               "solve_time_s": geometry.solve_time_s, "wall_s": wall_s}
+    if truth is not None:
+        est = geometry.mic_frame_positions_m()
+        tru = Geometry(positions_m=truth, position_std_m=np.zeros(len(truth)), offsets_s=np.zeros(len(truth)),
+                       offset_std_s=np.zeros(len(truth)), drifts_ppm=np.zeros(len(truth)),
+                       drift_std_ppm=np.zeros(len(truth)), verdict="truth", n_events=0).mic_frame_positions_m()
+        err = np.linalg.norm(est - tru, axis=1)
+        summary["location_error_m"] = {"rms": float(np.sqrt(np.mean(err[1:] ** 2))), "per_device": err.tolist()}
+    if plots:
+        from .geometry import plot_geometry
+        try:
+            plot_geometry(out / "geometry.png", geometry)
+        except Exception as err:  # noqa: BLE001 - the JSON is the product; a plot failure is one sentence
+            log.warning("The geometry plot could not be drawn (%s: %s); geometry.json is written.",
+                        type(err).__name__, err)
+    summary["outputs"] = sorted(p.name for p in out.iterdir()) + ["calibration.json"]
+    from .sinks import write_json
+    write_json(out / "calibration.json", {**summary, "geometry": geometry.to_dict()})
+    return {**summary, "geometry": geometry}
