@@ -400,19 +400,28 @@ class KalmanToa(_PairModel):
         self.last_mahalanobis_sq = float("nan")
         self._consecutive_gated = 0
 
-    def shift(self, delta_toa_s: np.ndarray) -> None:
-        """Move the tracked TOA by ``delta_toa_s`` (n_mics,) seconds, keeping rates and covariance.
+    def shift(self, delta_toa_s: np.ndarray, *, delta_rate_s_per_s: np.ndarray | None = None) -> None:
+        """Move the tracked TOA by ``delta_toa_s`` (n_mics,) seconds, and optionally its rate by
+        ``delta_rate_s_per_s`` (n_mics,), keeping the covariance.
 
-        Used when the stream re-aligns a device by a whole number of samples: the fine TOA the
-        filter sees jumps by a known amount, which must not look like clutter.
+        Used when the stream re-aligns a device by a whole number of samples (the fine TOA jumps by
+        a known amount) or corrects a device's clock drift (its TOA rate changes by a known
+        amount): a known change must not look like clutter.
         """
-        d = np.asarray(delta_toa_s, dtype=np.float64)
-        if d.shape != (self.n_mics,):
-            raise ValueError(f"delta_toa_s.shape={d.shape} must be (n_mics,)=({self.n_mics},)")
+        self._kf.x, self._kf.x_prior, self._kf.x_post = (
+            np.asarray(getattr(self._kf, name), dtype=np.float64) + self._shift_step(delta_toa_s, delta_rate_s_per_s)
+            for name in ("x", "x_prior", "x_post"))
+
+    def _shift_step(self, delta_toa_s, delta_rate_s_per_s) -> np.ndarray:
         step = np.zeros(2 * self._m)
-        step[: self._m] = d[1:] - d[0]
-        for name in ("x", "x_prior", "x_post"):
-            setattr(self._kf, name, np.asarray(getattr(self._kf, name), dtype=np.float64) + step)
+        for k, (name, value) in enumerate((("delta_toa_s", delta_toa_s), ("delta_rate_s_per_s", delta_rate_s_per_s))):
+            if value is None:
+                continue
+            d = np.asarray(value, dtype=np.float64)
+            if d.shape != (self.n_mics,):
+                raise ValueError(f"{name}.shape={d.shape} must be (n_mics,)=({self.n_mics},)")
+            step[k * self._m:(k + 1) * self._m] = d[1:] - d[0]
+        return step
 
     def update(self, tdoa_s: np.ndarray, confidence: np.ndarray | None = None) -> np.ndarray:
         """Predict one frame ahead, then update with (or gate out) one TDOA vector.
@@ -683,12 +692,10 @@ class FixedLagKalmanToa(KalmanToa):
         self.filtered_toa_s = super().update(tdoa_s, confidence)
         return self._smooth(P_prev)
 
-    def shift(self, delta_toa_s: np.ndarray) -> None:
+    def shift(self, delta_toa_s: np.ndarray, *, delta_rate_s_per_s: np.ndarray | None = None) -> None:
         """As :meth:`KalmanToa.shift`, also for the frames kept for smoothing."""
-        super().shift(delta_toa_s)
-        d = np.asarray(delta_toa_s, dtype=np.float64)
-        step = np.zeros(2 * self._m)
-        step[: self._m] = d[1:] - d[0]
+        super().shift(delta_toa_s, delta_rate_s_per_s=delta_rate_s_per_s)
+        step = self._shift_step(delta_toa_s, delta_rate_s_per_s)
         self._history = type(self._history)(((x + step, xp + step, g) for x, xp, g in self._history),
                                             maxlen=self._history.maxlen)
 

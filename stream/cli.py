@@ -131,10 +131,12 @@ def summary(report: dict[str, Any], out: Path) -> str:
         def row(name, key):
             v = enh.get(key)
             if v:
+                ssara = _fmt(v.get("ssara_db"), "6.2f")
                 lines.append(f"  {name:<34} SI-SDR {_fmt(v['si_sdr_db'], '6.2f')} dB  STOI {_fmt(v['stoi'], '.3f')}"
-                             f"  SSARA {_fmt(v['ssara_db'], '6.2f')} dB")
+                             + (f"  SSARA {ssara} dB" if ssara != "n/a" else ""))
         row("enhanced (this run)", "engine")
-        row("estimated TOA, equal weights", "estimated_toa_equal_weights")
+        other = "adaptive" if report["settings"]["weighting"] == "equal" else "equal"
+        row(f"estimated TOA, {other} weights", f"estimated_toa_{other}_weights")
         row("true TOA, async input", f"true_toa_async_{report['settings']['weighting']}")
         row("true TOA, synchronous signals", f"true_toa_sync_{report['settings']['weighting']}")
         b = enh.get("best_single_device")

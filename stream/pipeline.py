@@ -135,6 +135,8 @@ class Pipeline:
         self.state = PipelineState()
         self._fine_toa_s = np.zeros(self.n_devices)
         self._last_offsets = np.zeros(self.n_devices, dtype=np.int64)
+        pair_index = estimators.pairs(self.n_devices) if self.n_devices >= 2 else np.zeros((0, 2), np.intp)
+        self._pair_i, self._pair_j = pair_index[:, 0], pair_index[:, 1]
         self._recent: collections.deque = collections.deque(maxlen=RECENTRE_FRAMES)
 
     @property
@@ -302,19 +304,12 @@ class Pipeline:
         """A resampler's new rate changes the fine TOA's rate (s/s) the estimator tracks by ``delta_rate``
         (device ``i`` against device 0): move its rate state with it, as :meth:`KalmanToa.shift` does for
         the TOA, so that the change does not look like clutter. Estimators without a rate are left alone."""
-        kf = getattr(self.estimator, "_kf", None)
-        if kf is None or not getattr(self.estimator, "initialised", False):
-            return
-        m = self.n_devices - 1
-        step = np.zeros(2 * m)
-        step[m:] = delta_rate[1:] - delta_rate[0]
-        for name in ("x", "x_prior", "x_post"):
-            setattr(kf, name, np.asarray(getattr(kf, name), dtype=np.float64) + step)
+        if hasattr(self.estimator, "shift") and getattr(self.estimator, "initialised", False):
+            self.estimator.shift(np.zeros(self.n_devices), delta_rate_s_per_s=delta_rate)
 
     # helpers ---------------------------------------------------------------------------------
     def _pair_valid(self, valid: np.ndarray) -> np.ndarray:
-        p = estimators.pairs(self.n_devices)
-        return valid[p[:, 0]] & valid[p[:, 1]]
+        return valid[self._pair_i] & valid[self._pair_j]
 
     def _record(self, block: Block, tdoa: TdoaFrame, toa: ToaEstimate, enhanced: np.ndarray) -> None:
         s, c = self.state, self.counters
@@ -337,10 +332,12 @@ class Pipeline:
         """Re-check of the coarse alignment: move a device whose fine TOA has stayed near the GCC
         search edge (median over the last ``RECENTRE_FRAMES`` frames) by that median."""
         self._recent.append(fine_toa_s)
-        if len(self._recent) < RECENTRE_FRAMES:
+        limit = 0.5 * self.config.max_tdoa_s
+        # checked only on frames whose newest value passes the limit (cheap): when the median
+        # passes it, most recent frames do
+        if len(self._recent) < RECENTRE_FRAMES or not (np.abs(fine_toa_s) > limit).any():
             return
         median = np.median(np.asarray(self._recent), axis=0)
-        limit = 0.5 * self.config.max_tdoa_s
         pending = block.offsets_samples != self.aligner.offsets_samples   # a shift not yet in effect
         fs = self.config.working_rate_hz
         moved = False
