@@ -328,7 +328,7 @@ class Aligner:
                     continue
                 samples[:, d] = x
                 covered = min(start + hop, self._received[d]) - max(start, self._buf_start[d], 0)
-                rms = float(np.sqrt(np.mean(np.square(x, dtype=np.float64))))
+                rms = float(np.sqrt(np.dot(x, x) / hop))
                 valid[d] = bool((self.aligned[d] or d == 0) and covered >= hop // 2 and rms >= SILENCE_RMS)
             blocks.append(Block(seq=k, first_sample=k * hop, sample_rate_hz=self.sample_rate_hz, samples=samples,
                                 valid=valid, offsets_samples=self.offsets_samples.copy()))

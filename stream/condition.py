@@ -59,19 +59,20 @@ class DeviceConditioner:
         c = self.counters
         c.n_blocks += 1
         c.n_samples += len(x)
-        finite = np.isfinite(x)
-        if not finite.all():
+        energy = float(np.dot(x, x)) if len(x) else 0.0   # one BLAS call: finite iff every sample is
+        if not np.isfinite(energy):
+            finite = np.isfinite(x)
             n_bad = int(len(x) - finite.sum())
-            c.n_nan_samples += n_bad
-            x = np.where(finite, x, np.float32(0.0))
-            flags |= FrameFlag.NAN_REPLACED
+            if n_bad:
+                c.n_nan_samples += n_bad
+                x = np.where(finite, x, np.float32(0.0))
+                flags |= FrameFlag.NAN_REPLACED
+            energy = float(np.dot(x.astype(np.float64), x.astype(np.float64)))
         if len(x):
-            peak = np.abs(x)
-            n_clip = int(np.count_nonzero(peak >= CLIP_LEVEL))
-            if n_clip:
-                c.n_clipped_samples += n_clip
+            if x.max() >= CLIP_LEVEL or x.min() <= -CLIP_LEVEL:
+                c.n_clipped_samples += int(np.count_nonzero(np.abs(x) >= CLIP_LEVEL))
                 flags |= FrameFlag.CLIPPED
-            if float(np.sqrt(np.mean(x.astype(np.float64) ** 2))) < SILENCE_RMS:
+            if np.sqrt(energy / len(x)) < SILENCE_RMS:
                 c.n_silent_blocks += 1
                 flags |= FrameFlag.SILENT
         last = bool(flags & FrameFlag.LAST)

@@ -64,7 +64,7 @@ class EngineConfig:
     align_recheck_s: float = 10.0
     # replay
     speed: float | None = None
-    block_s: float = 0.02
+    block_s: float = 0.05
     # outputs
     plots: bool = True
     progress: bool = True

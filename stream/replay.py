@@ -182,7 +182,7 @@ class ReplaySource:
                     info.problem(f"Device '{info.name}': read error after {pos[d] / rate:.2f} s ({err}); "
                                  "its stream ends there.")
                 samples = data.mean(axis=1, dtype=np.float32) if data.shape[1] > 1 else data[:, 0]
-                last = len(samples) < want or handle.tell() >= info.n_file_samples
+                last = len(samples) < want or pos[d] + len(samples) >= info.n_file_samples
                 if len(samples) < want and pos[d] + len(samples) < info.n_file_samples and not flags:
                     flags |= FrameFlag.TRUNCATED
                     info.problem(f"Device '{info.name}': file ends after {(pos[d] + len(samples)) / rate:.2f} s, "

@@ -27,6 +27,7 @@ from .replay import ReplaySource
 log = logging.getLogger(__name__)
 
 KEEP_INPUT_MAX_S = 600.0   # aligned input is kept in memory for scoring only up to this duration
+FLUSH_BLOCKS = 32          # enhanced.wav and toa.csv are appended every this many blocks
 
 
 @dataclass
@@ -156,7 +157,8 @@ def run_replay(inputs: Sequence[str | Path], out_dir: str | Path, *, config: Eng
                     csv_sink.write(st.time_s[k], st.toa_s[k], st.gated[k])
                 written[0] = len(st.enhanced)
 
-            pipeline.on_block = lambda *_: flush_outputs()
+            # write out every FLUSH_BLOCKS blocks: few, larger writes; at most that much is lost on a hard kill
+            pipeline.on_block = lambda block, *_: flush_outputs() if block.seq % FLUSH_BLOCKS == 0 else None
             bar = tqdm(total=round(src.duration_s, 2), unit="s", desc="replay", disable=None if cfg.progress else True,
                        leave=False, bar_format="{l_bar}{bar}| {n:.1f}/{total:.1f} s [{elapsed}<{remaining}]")
             try:
