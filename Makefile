@@ -28,6 +28,7 @@ fixtures: setup
 bench: setup
 	$(PY) benchmarks/toa_table1.py
 	$(PY) benchmarks/throughput.py
+	$(PY) benchmarks/enhancement.py
 
 clean:
 	rm -rf $(VENV) out .pytest_cache
