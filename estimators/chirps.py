@@ -58,7 +58,7 @@ def matched_filter(signal: np.ndarray, template: np.ndarray) -> np.ndarray:
     return scipy.signal.fftconvolve(x, h[::-1], mode="full")[len(h) - 1:len(h) - 1 + len(x)]
 
 
-def _parabolic(y: np.ndarray, k: int) -> float:
+def parabolic_offset(y: np.ndarray, k: int) -> float:
     """Sub-sample peak offset of ``y`` around index ``k`` (parabola through three points), in samples."""
     if k <= 0 or k >= len(y) - 1:
         return 0.0
@@ -108,7 +108,7 @@ def detect_chirps(signal: np.ndarray, template: np.ndarray, *, sample_rate_hz: f
     for p in peaks:
         lo, hi = max(0, p - half), min(len(corr), p + half + 1)
         k = lo + int(np.argmax(corr[lo:hi]))
-        onsets.append((k + _parabolic(corr, k)) / sample_rate_hz)
+        onsets.append((k + parabolic_offset(corr, k)) / sample_rate_hz)
     return np.asarray(onsets, float)
 
 
@@ -145,7 +145,7 @@ def gcc_phat_delays(ref: np.ndarray, others: np.ndarray, *, sample_rate_hz: floa
     for r, row in enumerate(cc):
         k = int(np.argmax(row))
         fin = np.where(np.isfinite(row), row, np.min(row[np.isfinite(row)]))
-        out[r] = (lags[k] + _parabolic(fin, k)) / sample_rate_hz
+        out[r] = (lags[k] + parabolic_offset(fin, k)) / sample_rate_hz
     return out
 
 

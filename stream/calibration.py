@@ -44,6 +44,7 @@ from typing import Any, Callable, Literal, Sequence
 import numpy as np
 
 import estimators
+from estimators.chirps import parabolic_offset
 
 from .condition import DeviceConditioner, DeviceCounters
 from .errors import AdhocArrayError, ConfigError, InputFileError
@@ -621,14 +622,6 @@ class ChirpDetection:
     snr: float
 
 
-def _parabolic(y: np.ndarray, k: int) -> float:
-    if k <= 0 or k >= len(y) - 1:
-        return 0.0
-    a, b, c = y[k - 1], y[k], y[k + 1]
-    den = a - 2 * b + c
-    return float(0.5 * (a - c) / den) if den < 0 else 0.0
-
-
 class ChirpDetector:
     """Matched filter for a known chirp on one device's conditioned stream, in fixed blocks (overlap-save).
 
@@ -763,7 +756,7 @@ class ChirpDetector:
         if hi > lo:
             seg = self._corr[lo:hi]
             k = int(np.argmax(seg))
-            p[2] = b0 + lo + k + _parabolic(seg, k)
+            p[2] = b0 + lo + k + parabolic_offset(seg, k)
         else:  # pragma: no cover - the correlation buffer always covers a pending peak
             p[2] = float(peak)
 
