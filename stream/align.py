@@ -248,7 +248,6 @@ class Aligner:
         self.ready = True
 
     def _recheck(self) -> None:
-        t_s = self.next_block * self.hop_samples / self.sample_rate_hz
         ref_end = self.next_block * self.hop_samples
         ref_start = max(0, ref_end - self.window_samples)
         ref = self._slice(0, ref_start, ref_end)
@@ -269,7 +268,6 @@ class Aligner:
                 self.shift(d, delta, reason="device became audible with the reference; aligned now")
             elif abs(delta) > self.recheck_tolerance_samples:
                 self.shift(d, delta, reason="periodic re-check of the coarse offset")
-        del t_s
 
     def shift(self, device_id: int, delta_samples: int, *, reason: str) -> None:
         """Move a device's coarse offset by ``delta_samples`` from the next block on."""

@@ -2,6 +2,7 @@
 SAR, SSARA eqs. 19-21), the best single device, and delay-and-sum steered by the true TOA."""
 from __future__ import annotations
 
+import dataclasses
 import logging
 from typing import Any
 
@@ -65,7 +66,7 @@ def offline_toa(name: str, config: EngineConfig, tdoa_s: np.ndarray, confidence:
                 offsets_samples: np.ndarray) -> np.ndarray:
     """Re-run another estimator on the recorded TDOA frames; returns total relative TOA (n_frames, M)."""
     n_dev = offsets_samples.shape[1]
-    est = make_estimator(_with(config, estimator=name), n_dev)
+    est = make_estimator(dataclasses.replace(config, estimator=name), n_dev)
     fs = config.working_rate_hz
     out = np.zeros((len(tdoa_s), n_dev))
     last = offsets_samples[0]
@@ -79,11 +80,6 @@ def offline_toa(name: str, config: EngineConfig, tdoa_s: np.ndarray, confidence:
                 est.reset()
         out[k] = est.update(tdoa_s[k], confidence[k]) + offsets_samples[k] / fs
     return out
-
-
-def _with(config: EngineConfig, **changes) -> EngineConfig:
-    import dataclasses
-    return dataclasses.replace(config, **changes)
 
 
 def evaluate_run(pipeline: Pipeline, fixture: Fixture, device_index: list[int]) -> dict[str, Any]:
