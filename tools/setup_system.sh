@@ -12,5 +12,8 @@ if [ "$(id -u)" != 0 ]; then
   exit 0   # the Python parts still work; sound-card tests skip with this reason
 fi
 export DEBIAN_FRONTEND=noninteractive
-apt-get update -qq
-apt-get install -y -qq --no-install-recommends $(printf '%s\n' "${need[@]}" | sort -u) >/dev/null
+pkgs=$(printf '%s\n' "${need[@]}" | sort -u)
+if ! { apt-get update -qq && apt-get install -y -qq --no-install-recommends $pkgs >/dev/null; }; then
+  # the replay engine and its tests run without them; only sound-card use needs them
+  echo "adhoc-array: could not install $pkgs with apt-get; sound-card features will say what is missing" >&2
+fi
