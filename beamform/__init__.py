@@ -1,4 +1,5 @@
-"""Online beamforming in the STFT domain. Imports only numpy and scipy.
+"""Online beamforming in the STFT domain. Imports numpy, scipy and numba (the per-hop work runs in
+compiled kernels whose FFTs use rocket-fft's numba overloads of ``np.fft``).
 
 - :mod:`beamform.stft`: streaming STFT analysis / weighted-overlap-add synthesis (and batch twins).
 - :mod:`beamform.das`: online weighted delay-and-sum (TOA paper eqs. 7-8).

@@ -50,6 +50,17 @@ Invalid channels (``valid[i] == False``, a non-finite ``toa_s[i]`` or any non-fi
 channel's spectrum) get weight 0 and are left out of the statistics for that frame; the others are
 renormalised. NaN never reaches the output. With no valid channel the output frame is silent.
 
+Implementation
+--------------
+One hop of :meth:`DelayAndSum.process_spectra` is one compiled numba call (``_das_process``):
+validity, steering, weights, sum, then ``irfft`` (rocket-fft's ``np.fft`` inside numba) and the
+weighted overlap-add of :mod:`beamform.stft`. The steering is not tabulated per TOA: per channel the
+phase step ``omega_1 toa_i`` is reduced modulo ``2 pi`` (in turns, exactly), two exact phasors
+``e_1 = exp(i omega_1 toa)`` and ``e_K`` seed float64 recurrences for ``exp(i omega_k toa)``,
+``k < K``, and for every K-th bin, and each bin is a float32 product of the two (error < 2e-7 relative
+for any TOA, all bins). The statistics (``C``, the fit, the weights) are float64; the band
+cross-power of a frame is summed in float32 SIMD lanes.
+
 The pure function :func:`delay_and_sum` runs the same stage over a whole recording.
 """
 from __future__ import annotations
@@ -57,13 +68,319 @@ from __future__ import annotations
 import math
 from typing import Literal
 
+import numba
 import numpy as np
 
-from .stft import StreamingIstft, StreamingStft, istft, stft
+from .stft import StreamingIstft, StreamingStft, _overlap_add, istft, stft
 
 __all__ = ["DelayAndSum", "delay_and_sum"]
 
 Weighting = Literal["equal", "adaptive"]
+
+_F64 = np.dtype(np.float64)
+_C64 = np.dtype(np.complex64)
+_BOOL = np.dtype(np.bool_)
+
+# Layout of the state, parameter and work arrays the kernels take (a few arrays instead of a dozen
+# arguments: every argument of a compiled call costs ~40 ns to unbox).
+# fstate, float64:
+_MASS = 0         # bias-correction mass m_t of the exponential forgetting (state)
+_BIN_HZ = 1       # sample_rate_hz / frame_samples: turns of phase per bin per second of TOA
+_FORGET = 2       # forgetting factor lambda per frame
+_INV_SNR_MAX = 3  # 10^(-max_channel_snr_db / 10)
+_FLOOR = 4        # weight_floor
+_EXPONENT = 5     # weight_exponent
+# istate, int64:
+_N_UPDATES = 0    # frames that updated the rank-one fit (state)
+_ADAPTIVE = 1     # 1: adaptive weighting, 0: equal
+_LO = 2           # statistics band: bins [lo, hi)
+_HI = 3
+_STARTUP_FRAMES = 4
+_STARTUP_ITER = 5
+_N_FINE = 6       # K: fine phasors per channel (see _steer)
+# f64, float64 (M + 1 + _N_WORK, M): the smoothed cross-power C (M rows), the gains g (1 row), then 10
+# work rows: validity (0/1), reduced turns per bin, e_1 = exp(i 2 pi turns), the running fine
+# phasor, the rank-one fit's gains, its products and the float64 weights.
+_N_WORK = 10
+_OK, _TURNS, _E_RE, _E_IM, _F_RE, _F_IM, _G, _GM, _G_NEW, _W = range(_N_WORK)
+# f32, float32: [channel weights (M) | fine phasors (M, 2, K) | steering row (2 J K)].
+_TWO_PI = 2.0 * math.pi
+_EXPONENT_MASK = np.uint32(0x7F800000)  # float32 exponent bits: all set <=> inf or NaN
+
+
+@numba.njit(cache=True, nogil=True)
+def _all_finite(bits: np.ndarray) -> bool:
+    """True if no float32 in ``bits`` (their uint32 view) is inf or NaN (exponent bits all set).
+
+    An integer max-reduction: it vectorises without reordering float sums and cannot overflow.
+    """
+    top = np.uint32(0)
+    for t in range(bits.shape[0]):
+        top = max(top, bits[t] & _EXPONENT_MASK)
+    return top != _EXPONENT_MASK
+
+
+@numba.njit(cache=True, nogil=True, fastmath={"reassoc"})
+def _dot(a: np.ndarray, b: np.ndarray) -> float:
+    """``sum_t a[t] b[t]`` of two float32 rows, summed in float32 SIMD lanes (``reassoc``).
+
+    On the interleaved (re, im) views of two aligned spectra this is ``sum_b Re(Z_i(b) Z_j(b)^*)``;
+    relative error ~1e-7 of ``sum |a b|``, as a float32 BLAS product would give (a float64 sum
+    took 1.7x as long).
+    """
+    s = np.float32(0.0)
+    for t in range(a.shape[0]):
+        s += a[t] * b[t]
+    return s
+
+
+@numba.njit(cache=True, nogil=True)
+def _steer(x: np.ndarray, turns: float, fine: np.ndarray, row: np.ndarray, weight: float, out: np.ndarray,
+           accumulate: bool) -> None:
+    """``out (+)= weight exp(+i 2 pi b turns) X(b)`` for every bin ``b`` (eqs. 7-8 for one channel).
+
+    ``x`` and ``out`` are interleaved (re, im) float32 rows of ``n_bins`` values; ``turns`` is
+    ``omega_1 toa / 2 pi`` reduced to [-1/2, 1/2] (whole turns drop out exactly); ``fine`` (2, K)
+    holds ``f_k = exp(i 2 pi k turns)``, ``k < K``. With ``b = j K + k`` the steering is
+    ``c_j f_k``, ``c_j = exp(i 2 pi j K turns)``: ``c`` follows the recurrence
+    ``c_{j+1} = c_j e_K`` in float64 from the exact ``e_K = exp(i 2 pi (K turns mod 1))``
+    (error ~ j 1e-16), the weight is folded into ``c_j``, and each block of K bins is the
+    float32 product ``c_j f_k`` (vectorised along k; steering error <= ~2e-7 relative).
+    ``row`` is a float32 work row of ``2 J K`` values.
+    """
+    n_bins = x.shape[0] // 2
+    n_fine = fine.shape[1]
+    fr = fine[0]
+    fi = fine[1]
+    v = n_fine * turns
+    v -= np.rint(v)
+    kr = math.cos(_TWO_PI * v)
+    ki = math.sin(_TWO_PI * v)
+    cr = weight
+    ci = 0.0
+    for base in range(0, n_bins, n_fine):
+        a = np.float32(cr)
+        b = np.float32(ci)
+        seg = row[2 * base : 2 * base + 2 * n_fine]
+        for k in range(n_fine):
+            seg[2 * k] = a * fr[k] - b * fi[k]
+            seg[2 * k + 1] = a * fi[k] + b * fr[k]
+        cr, ci = cr * kr - ci * ki, cr * ki + ci * kr
+    if accumulate:
+        for t in range(n_bins):
+            xr = x[2 * t]
+            xi = x[2 * t + 1]
+            sr = row[2 * t]
+            si = row[2 * t + 1]
+            out[2 * t] += xr * sr - xi * si
+            out[2 * t + 1] += xr * si + xi * sr
+    else:
+        for t in range(n_bins):
+            xr = x[2 * t]
+            xi = x[2 * t + 1]
+            sr = row[2 * t]
+            si = row[2 * t + 1]
+            out[2 * t] = xr * sr - xi * si
+            out[2 * t + 1] = xr * si + xi * sr
+
+
+@numba.njit(cache=True, nogil=True)
+def _adaptive_weights(stats: np.ndarray, fstate: np.ndarray, istate: np.ndarray, work: np.ndarray, n_ok: int,
+                      w: np.ndarray) -> None:
+    """MRC weights from the smoothed cross-power ``C = stats[:M]`` (already updated with this
+    frame) and the rank-one gains ``g = stats[M]`` (module docstring), into ``w`` (float64).
+
+    Damped ALS steps of ``g = argmin sum_{i != j} (C_ij - g_i g_j)^2`` over the valid channels
+    (``n_iter`` per frame: the start-up count during the first second, then 1),
+    ``g_i <- sqrt(g_i max(sum_{j != i} C_ij g_j, 0) / sum_{j != i} g_j^2)`` clipped to
+    ``[1e-6 sqrt(max C_ii), sqrt(C_ii)]``; ``sigma_i^2 = max(C_ii - g_i^2, C_ii 10^(-snr_max / 10))``;
+    ``w_i ~ (g_i / sigma_i^2)^p``, floored at ``floor / M_valid``, normalised to sum 1. The gains
+    of invalid channels are kept for later frames.
+    """
+    m = w.shape[0]
+    ok = work[_OK]
+    g = work[_G]
+    gm = work[_GM]
+    g_new = work[_G_NEW]
+    gain = stats[m]
+    d_max = 0.0
+    for i in range(m):
+        d_max = max(d_max, stats[i, i] * ok[i])
+    if not d_max > 0.0:
+        for i in range(m):
+            w[i] = ok[i] / n_ok
+        return
+    tiny = 1e-12 * d_max
+    g_max = gain[0]
+    for i in range(1, m):
+        g_max = max(g_max, gain[i])
+    for i in range(m):  # warm start from the last fit, else half the channel amplitude
+        g[i] = gain[i] if g_max > 0.0 else 0.5 * math.sqrt(stats[i, i])
+    istate[_N_UPDATES] += 1
+    n_iter = istate[_STARTUP_ITER] if istate[_N_UPDATES] <= istate[_STARTUP_FRAMES] else 1
+    g_floor = 1e-6 * math.sqrt(d_max)
+    for _ in range(n_iter):
+        g2_sum = 0.0
+        for i in range(m):
+            gm[i] = g[i] * ok[i]
+            g2_sum += gm[i] * gm[i]
+        for i in range(m):
+            cg = 0.0
+            for j in range(m):
+                cg += stats[i, j] * gm[j]
+            # g_i <- sum_{j != i} C_ij g_j / sum_{j != i} g_j^2
+            g_new[i] = max(cg - stats[i, i] * gm[i], 0.0) / (g2_sum - gm[i] * gm[i] + tiny)
+        for i in range(m):  # damped (geometric mean with the last step), g_i^2 <= C_ii
+            g[i] = min(max(math.sqrt(g[i] * g_new[i]), g_floor), math.sqrt(stats[i, i]))
+    total = 0.0
+    for i in range(m):
+        if ok[i]:
+            gain[i] = g[i]
+        d = stats[i, i]
+        noise = max(d - g[i] * g[i], d * fstate[_INV_SNR_MAX])  # sigma_i^2 with the SNR cap
+        w[i] = g[i] * ok[i] / (noise + tiny)  # MRC: g_i / sigma_i^2
+        total += w[i]
+    if not total > 0.0:
+        for i in range(m):
+            w[i] = ok[i] / n_ok
+        return
+    for i in range(m):
+        w[i] /= total
+    p = fstate[_EXPONENT]
+    if p != 1.0:  # w_i ~ (g_i / sigma_i^2)^p, between equal (0) and MRC (1)
+        total = 0.0
+        for i in range(m):
+            w[i] = w[i] ** p * ok[i]
+            total += w[i]
+        for i in range(m):
+            w[i] /= total
+    floor = fstate[_FLOOR]
+    if floor > 0.0:
+        total = 0.0
+        for i in range(m):
+            w[i] = max(w[i], floor / n_ok) * ok[i]
+            total += w[i]
+        for i in range(m):
+            w[i] /= total
+
+
+@numba.njit(cache=True, nogil=True)
+def _beamform(X: np.ndarray, toa: np.ndarray, valid: np.ndarray, f64: np.ndarray, fstate: np.ndarray,
+              istate: np.ndarray, f32: np.ndarray, Z: np.ndarray) -> None:
+    """Eqs. 7-8 for one frame: ``Y = Z[M] = sum_i w_i exp(+i omega toa_i) X_i``, weights ``w``
+    (float32) into ``f32[:M]``; array layouts at the top of the module.
+
+    ``X`` (M, n_bins) complex64 channel-major. Channel ``i`` is valid if ``valid[i]``, ``toa[i]``
+    is finite and ``X_i`` has no inf/NaN; equal weights are ``1 / M_valid``; adaptive ones come from
+    the statistics of the aligned ``Z_i`` (rows of ``Z``) over bins ``[lo, hi)``, updated with
+    ``C_ij += (F_ij - C_ij) / m_t``, ``m_t = lambda m_{t-1} + 1`` on valid pairs,
+    ``F_ij = sum_b Re(Z_i Z_j^*)``. No valid channel: ``Y = 0``, ``weights = 0``.
+    """
+    m, n_bins = X.shape
+    n_fine = istate[_N_FINE]
+    stats = f64[: m + 1]
+    work = f64[m + 1 :]
+    weights = f32[:m]
+    fine = f32[m : m + 2 * m * n_fine].reshape((m, 2, n_fine))
+    row = f32[m + 2 * m * n_fine :]
+    xf = X.view(np.float32)  # (M, 2 n_bins): interleaved (re, im)
+    xbits = X.view(np.uint32)
+    zf = Z.view(np.float32)
+    y = zf[m]
+    ok = work[_OK]
+    turns = work[_TURNS]
+    er = work[_E_RE]
+    ei = work[_E_IM]
+    n_ok = 0
+    for i in range(m):
+        # eq. (7) phase step per bin in turns, omega_1 toa / 2 pi (a non-finite one, also from an
+        # overflowing toa, cannot be steered), then reduced exactly to [-1/2, 1/2]
+        u = toa[i] * fstate[_BIN_HZ]
+        good = valid[i] and math.isfinite(u) and _all_finite(xbits[i])
+        ok[i] = 1.0 if good else 0.0
+        n_ok += good
+        if not good:
+            u = 0.0
+        u -= np.rint(u)
+        turns[i] = u
+        er[i] = math.cos(_TWO_PI * u)
+        ei[i] = math.sin(_TWO_PI * u)
+    if n_ok == 0:
+        y[:] = 0.0
+        weights[:] = 0.0
+        return
+    # fine[i, :, k] = exp(i 2 pi k turns_i) by the recurrence f_{k+1} = f_k e_1 in float64, all
+    # channels in step (error ~ k 1e-16).
+    fr = work[_F_RE]
+    fi = work[_F_IM]
+    fr[:] = 1.0
+    fi[:] = 0.0
+    for k in range(n_fine):
+        for i in range(m):
+            fine[i, 0, k] = fr[i]
+            fine[i, 1, k] = fi[i]
+            fr[i], fi[i] = fr[i] * er[i] - fi[i] * ei[i], fr[i] * ei[i] + fi[i] * er[i]
+    adaptive = istate[_ADAPTIVE] != 0
+    if not adaptive:
+        w = np.float32(1.0) / np.float32(n_ok)
+        y[:] = 0.0
+        for i in range(m):
+            weights[i] = w if ok[i] else np.float32(0.0)
+            if ok[i]:
+                _steer(xf[i], turns[i], fine[i], row, np.float64(w), y, True)
+        return
+    for i in range(m):
+        if ok[i]:
+            _steer(xf[i], turns[i], fine[i], row, 1.0, zf[i], False)
+    # Band cross-power of this frame into the smoothed statistics, valid pairs only.
+    fstate[_MASS] = fstate[_FORGET] * fstate[_MASS] + 1.0
+    rate = 1.0 / fstate[_MASS]
+    lo = 2 * istate[_LO]  # interleaved (re, im) floats of the band's bins
+    hi = 2 * istate[_HI]
+    for i in range(m):
+        if ok[i]:
+            band_i = zf[i, lo:hi]  # (row, slice) indexing keeps the contiguous layout for _dot
+            for j in range(i + 1):
+                if ok[j]:
+                    c = stats[i, j] + rate * (np.float64(_dot(band_i, zf[j, lo:hi])) - stats[i, j])
+                    stats[i, j] = c
+                    stats[j, i] = c
+    w64 = work[_W]
+    _adaptive_weights(stats, fstate, istate, work, n_ok, w64)
+    first = True
+    for i in range(m):
+        wi = np.float32(w64[i])
+        weights[i] = wi
+        if ok[i]:
+            zi = zf[i]
+            if first:
+                for t in range(2 * n_bins):
+                    y[t] = wi * zi[t]
+                first = False
+            else:
+                for t in range(2 * n_bins):
+                    y[t] += wi * zi[t]
+
+
+@numba.njit(cache=True, nogil=True)
+def _das_beamform(X: np.ndarray, toa: np.ndarray, valid: np.ndarray, f64: np.ndarray, fstate: np.ndarray,
+                  istate: np.ndarray, f32: np.ndarray, Z: np.ndarray) -> np.ndarray:
+    """:func:`_beamform` returning a new copy of ``Y``, shape (n_bins,), complex64."""
+    _beamform(X, toa, valid, f64, fstate, istate, f32, Z)
+    return Z[X.shape[0]].copy()
+
+
+@numba.njit(cache=True, nogil=True)
+def _das_process(X: np.ndarray, toa: np.ndarray, valid: np.ndarray, f64: np.ndarray, fstate: np.ndarray,
+                 istate: np.ndarray, f32: np.ndarray, Z: np.ndarray, ola: np.ndarray,
+                 ola_state: np.ndarray) -> np.ndarray:
+    """:func:`_beamform`, then ``irfft(Y)`` and the weighted overlap-add (``beamform.stft._overlap_add``);
+    returns the next ``hop`` output samples, float32."""
+    _beamform(X, toa, valid, f64, fstate, istate, f32, Z)
+    n = ola.shape[0] // 3
+    out = np.empty(ola_state[1], np.float32)
+    _overlap_add(np.fft.irfft(Z[X.shape[0]], n), ola, ola_state, out)
+    return out
 
 
 class DelayAndSum:
@@ -103,7 +420,7 @@ class DelayAndSum:
     ----------
     channel_weights : ndarray, shape (n_channels,), float32
         Weights applied to the latest frame (non-negative, summing to 1 unless no channel was
-        valid, then all 0).
+        valid, then all 0); a new array (a copy) each time it is read.
     latency_samples : int
         Output delay with respect to device 0's input, ``frame_samples - hop_samples``.
     latency_s : float
@@ -153,6 +470,8 @@ class DelayAndSum:
         self.hop_samples = self._stft.hop_samples
         self.n_bins = self._stft.n_bins
         self.analysis_window = self._stft.analysis_window
+        # The synthesis runs inside _das_process on this object's buffers, so that
+        # beamform_spectra followed by self._istft.process is the same as process_spectra.
         self._istft = StreamingIstft(
             frame_samples=self.frame_samples, hop_samples=self.hop_samples, analysis_window=self.analysis_window
         )
@@ -160,52 +479,37 @@ class DelayAndSum:
         self.latency_s = self.latency_samples / self.sample_rate_hz
         self.omega_rad_s = 2.0 * np.pi * np.arange(self.n_bins) * self.sample_rate_hz / self.frame_samples
 
-        # Steering table: exp(i w_{jK+k} toa) = exp(i w_{jK} toa) exp(i w_k toa) (coarse x fine), so
-        # cos/sin run on M (K + J) phases, not M n_bins. K is a power of two near sqrt(n_bins):
-        # longer contiguous rows for the (M, J, K) outer product (4096: K = 64 beat 46 by ~1 us).
         m = self.n_channels
-        k = max(16, 1 << int(np.ceil(np.log2(np.sqrt(self.n_bins)))))
-        j = -(-self.n_bins // k)
         bin_hz = self.sample_rate_hz / self.frame_samples
-        self._table_hz = bin_hz * np.concatenate([np.arange(k), k * np.arange(j)])  # (K + J,)
-        self._turns = np.empty((m, k + j))  # phases in turns (float64), then their fraction
-        self._whole = np.empty((m, k + j))
-        self._phase32 = np.empty((m, k + j), np.float32)
-        table = np.empty((m, k + j), np.complex64)  # [fine | coarse] factors per channel
-        steer = np.empty((m, j, k), np.complex64)
-        self._steer = steer.reshape(m, j * k)[:, : self.n_bins]  # (M, n_bins) view
-        # The (M, J, K) outer product as M real (J x 2) @ (2 x 2K) products (see _steering) once it
-        # is large: numpy's complex64 multiply has no fast loop for a broadcast operand (~1.2 ns per
-        # value), the stacked sgemm costs ~9 us flat; measured break-even near 8k values
-        # (4096 x 8: 12 instead of 20 us).
-        self._outer_by_matmul = m * j * k >= 8192
-        fine_rows = np.empty((m, 2, 2 * k), np.float32)
-        # Views of these work arrays made once (each view costs ~0.2-0.3 us per frame otherwise).
-        self._table_re, self._table_im = table.real, table.imag
-        self._fine, self._fine_row, self._coarse_col = table[:, :k], table[:, None, :k], table[:, k:, None]
-        self._fine_pairs = table[:, :k].view(np.float32)  # (M, 2K): f_r, f_i interleaved
-        self._coarse_pairs = table[:, k:].view(np.float32).reshape(m, j, 2)  # [c_r, c_i] per coarse bin
-        self._fine_rows = fine_rows
-        self._fine_rows_0, self._fine_rows_1 = fine_rows[:, 0], fine_rows[:, 1].view(np.complex64)
-        self._steer_full, self._steer_pairs = steer, steer.view(np.float32).reshape(m, j, 2 * k)
-        self._aligned = np.empty((m, self.n_bins), np.complex64)  # Z, channel-major
-        self._ones_bins = np.ones(self.n_bins, dtype=np.complex64)
-        self._equal_weights = np.full(m, np.float32(1.0) / np.float32(m), dtype=np.float32)
-
         # Bins [lo, hi) feed the weighting statistics.
-        bin_hz = self.sample_rate_hz / self.frame_samples
         lo = min(int(np.ceil(low_hz / bin_hz)), self.n_bins - 1)
         hi = min(int(np.floor(high_hz / bin_hz)) + 1, self.n_bins)
         self._stats_bins = slice(lo, max(hi, lo + 1))
-        self._aligned_band_pairs = self._aligned[:, self._stats_bins].view(np.float32)  # see _adaptive_weights
         self._forget = float(np.exp(-self.hop_samples / (self.sample_rate_hz * weight_time_constant_s)))
         self._inv_snr_max = float(10.0 ** (-max_channel_snr_db / 10.0))
-        self._weight_floor = float(weight_floor)
-        self._weight_exponent = float(weight_exponent)
         # The rank-one fit takes 10 ALS steps per frame during the first second (the statistics
         # move fast), then one step per frame warm-started from the last.
         self._startup_frames = int(np.ceil(self.sample_rate_hz / self.hop_samples))
         self._startup_iter = 10
+
+        # Kernel parameters and state (layouts at the top of the module).
+        self._fstate = np.array([0.0, bin_hz, self._forget, self._inv_snr_max, float(weight_floor),
+                                 float(weight_exponent)])
+        # Steering blocks: K fine phasors per channel, K a power of two >= sqrt(n_bins) so that
+        # the K-long product rows and the n_bins / K coarse steps balance.
+        n_fine = max(2, 1 << int(np.ceil(np.log2(np.sqrt(self.n_bins)))))
+        n_blocks = -(-self.n_bins // n_fine)
+        self._istate = np.array([0, int(weighting == "adaptive"), self._stats_bins.start, self._stats_bins.stop,
+                                 self._startup_frames, self._startup_iter, n_fine], dtype=np.int64)
+        self._f64 = np.zeros((m + 1 + _N_WORK, m))
+        self._stats = self._f64[: m + 1]  # C, then the gains g
+        self._f32 = np.zeros(m + 2 * m * n_fine + 2 * n_blocks * n_fine, dtype=np.float32)
+        self._weights = self._f32[:m]
+        self._aligned = np.zeros((m + 1, self.n_bins), dtype=np.complex64)  # Z_i, then Y
+        self._all_valid = np.ones(m, dtype=bool)
+        self._x_shape = (self.n_bins, m)
+        self._xc_shape = (m, self.n_bins)
+        self._m_shape = (m,)
         self.reset()
 
     # ------------------------------------------------------------------ state
@@ -213,14 +517,16 @@ class DelayAndSum:
         """Forget the STFT/overlap-add buffers and the weighting statistics."""
         self._stft.reset()
         self._istft.reset()
-        m = self.n_channels
-        self._cov = np.zeros((m, m))
-        self._ones_m = np.ones(m)
-        self._mass = 0.0
-        self._n_updates = 0
-        self._gain = np.zeros(m)
-        self._last_toa: bytes | None = None  # the TOA the steering table holds (raw bytes)
-        self.channel_weights = np.full(m, 1.0 / m, dtype=np.float32)
+        self._stats.fill(0.0)
+        self._fstate[_MASS] = 0.0
+        self._istate[_N_UPDATES] = 0
+        self._weights.fill(np.float32(1.0 / self.n_channels))
+
+    @property
+    def channel_weights(self) -> np.ndarray:
+        """Weights applied to the latest frame, shape (n_channels,), float32: a copy, so a kept
+        array does not change with later frames."""
+        return self._weights.copy()
 
     # ------------------------------------------------------------------ stages
     def process(self, block: np.ndarray, toa_s: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
@@ -245,6 +551,9 @@ class DelayAndSum:
     def process_spectra(self, spectra: np.ndarray, toa_s: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
         """Beamform one STFT frame (eq. 8) and return the next hop of output samples.
 
+        One compiled call: validity, steering (eq. 7), weights, sum (eq. 8), ``irfft`` and the
+        weighted overlap-add.
+
         Parameters
         ----------
         spectra : ndarray, shape (n_bins, n_channels), complex64
@@ -254,14 +563,17 @@ class DelayAndSum:
             Relative TOA used to steer this frame.
         valid : ndarray, shape (n_channels,), bool, optional
             ``False`` excludes a device for this frame. Channels with a non-finite value in
-            ``spectra`` are excluded as well.
+            ``spectra`` or a non-finite ``toa_s`` are excluded as well.
 
         Returns
         -------
         ndarray, shape (hop_samples,), float32
             Beamformed samples, delayed by :attr:`latency_samples`.
         """
-        return self._istft.process(self.beamform_spectra(spectra, toa_s, valid))
+        X, toa_s, valid = self._kernel_inputs(spectra, toa_s, valid)
+        ist = self._istft
+        return _das_process(X, toa_s, valid, self._f64, self._fstate, self._istate, self._f32, self._aligned,
+                            ist._ola, ist._state)
 
     def beamform_spectra(self, spectra: np.ndarray, toa_s: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
         """Steer, weight and sum one STFT frame (eqs. 7-8) without synthesis.
@@ -278,148 +590,41 @@ class DelayAndSum:
         Returns
         -------
         ndarray, shape (n_bins,), complex64
-            ``Y(w) = sum_i w_i exp(+i w toa_i) X_i(w)``.
+            ``Y(w) = sum_i w_i exp(+i w toa_i) X_i(w)``, a new array.
         """
-        X = spectra
-        if X.shape != (self.n_bins, self.n_channels):
-            raise ValueError(f"{X.shape=} must be ({self.n_bins}, {self.n_channels}) = (n_bins, n_channels)")
-        # Work channel-major, (n_channels, n_bins): contiguous rows for the steering product, the
-        # weighting statistics and the sum. StreamingStft's spectra are already laid out so (their
-        # transpose is C-contiguous); any other layout is copied once here.
-        Xc = X.T
-        if not Xc.flags.c_contiguous:
-            Xc = np.ascontiguousarray(Xc)
-        with np.errstate(invalid="ignore", over="ignore"):
-            ok = np.isfinite(Xc @ self._ones_bins)  # a NaN/inf anywhere in a row propagates to its sum
-        if valid is not None:
-            ok &= np.asarray(valid, dtype=bool)
-        toa = np.asarray(toa_s, dtype=np.float64)
-        if toa.shape != (self.n_channels,):
-            raise ValueError(f"{toa.shape=} must be ({self.n_channels},) = (n_channels,)")
-        # A device without a TOA cannot be steered: leave it out. A finite sum (one call) means
-        # every TOA is finite; otherwise (or on overflow near 1e308 s) the exact test runs.
-        if not math.isfinite(np.add.reduce(toa)):
-            toa_ok = np.isfinite(toa)
-            ok &= toa_ok
-            toa = np.where(toa_ok, toa, 0.0)
-        all_ok = bool(ok.all())
-        if not all_ok:
-            Xc = np.where(ok[:, None], Xc, np.complex64(0.0))
-        # eq. (7): a_i(w) X_i(w), a_i(w) = exp(+i w toa_i)
-        if Xc.dtype == np.complex64:
-            Z = np.multiply(Xc, self._steering(toa), out=self._aligned)
-        else:
-            Z = Xc * self._steering(toa)
+        X, toa_s, valid = self._kernel_inputs(spectra, toa_s, valid)
+        return _das_beamform(X, toa_s, valid, self._f64, self._fstate, self._istate, self._f32, self._aligned)
 
-        if self.weighting == "equal":
-            # all valid (the usual case): the constant 1 / M, without the statistics
-            w = self._equal_weights if all_ok else self._equal_weights_of(ok)
-        else:
-            w = self._adaptive_weights(Z, ok, all_ok)
-        self.channel_weights = w.astype(np.float32)  # a new array every frame (callers keep it)
-        return w.astype(np.complex64) @ Z  # eq. (8) with weights w_i (float32 values)
-
-    # ------------------------------------------------------------------ helpers
-    def _equal_weights_of(self, ok: np.ndarray) -> np.ndarray:
-        n_ok = int(ok.sum())
-        return ok / np.float32(n_ok) if n_ok else np.zeros(self.n_channels)
-
-    def _steering(self, toa: np.ndarray) -> np.ndarray:
-        """Steering matrix ``exp(+i w_b toa_i)``, shape (n_channels, n_bins), complex64, cached per TOA.
-
-        The view returned is overwritten by the next call with another TOA.
+    # ------------------------------------------------------------------ input checks
+    def _kernel_inputs(
+        self, spectra: np.ndarray, toa_s: np.ndarray, valid: np.ndarray | None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The arrays as the kernels take them: ``spectra.T`` complex64, ``toa_s`` float64, ``valid``
+        bool, each C-contiguous and writeable (one compiled specialisation: numba types read-only or
+        strided arrays differently). The common case (StreamingStft spectra, a float64 TOA, a bool
+        mask or none) passes without a copy; ``flags.carray`` is C-contiguous, aligned and writeable.
         """
-        key = toa.tobytes()  # bitwise comparison of 8 floats: ~0.2 us against ~2 us for (a != b).any()
-        if key != self._last_toa:
-            self._last_toa = key
-            # Phase w toa in turns, reduced to [-1/2, 1/2] in float64, then cos/sin in float32: the
-            # float64 cos/sin cost ~9 ns per value here against ~0.5 ns (SIMD) in float32, and
-            # np.remainder ~7 ns; rint and subtract are SIMD. Error of the table ~3e-7 (1e-7
-            # with float64 cos/sin), float32 audio has 6e-8.
-            turns = np.multiply(toa[:, None], self._table_hz, out=self._turns)
-            np.subtract(turns, np.rint(turns, out=self._whole), out=turns)
-            phase = np.multiply(turns, 2.0 * np.pi, out=self._phase32)  # rad in [-pi, pi], float32
-            np.cos(phase, out=self._table_re)
-            np.sin(phase, out=self._table_im)  # eq. (7): exp(+i w toa_i) on the fine and coarse grids
-            if self._outer_by_matmul:
-                # c f = (c_r f_r - c_i f_i) + i (c_r f_i + c_i f_r): with the float32 views,
-                # [c_r, c_i] (J x 2) @ [[f_r, f_i], [-f_i, f_r]] (2 x 2K, pairs interleaved) is
-                # the interleaved (re, im) of the complex64 (J, K) outer product; the second row
-                # is the float32 view of i f.
-                self._fine_rows_0[...] = self._fine_pairs
-                np.multiply(self._fine, 1j, out=self._fine_rows_1)
-                np.matmul(self._coarse_pairs, self._fine_rows, out=self._steer_pairs)
-            else:
-                np.multiply(self._coarse_col, self._fine_row, out=self._steer_full)
-        return self._steer
-
-    def _adaptive_weights(self, Z: np.ndarray, ok: np.ndarray, all_ok: bool) -> np.ndarray:
-        # sum_b Re(Z_i Z_j^*) = sum_b (Re Z_i Re Z_j + Im Z_i Im Z_j): the interleaved (re, im) float32
-        # view of the channel-major band is a (M, 2 n_band) matrix V with V V^T exactly that sum,
-        # one BLAS call and no copy.
-        if Z is self._aligned:
-            V = self._aligned_band_pairs
-        else:
-            band = Z[:, self._stats_bins]
-            V = band.view(band.real.dtype)
-        # V @ V.T on one buffer goes to BLAS syrk, which OpenBLAS runs ~2x slower than gemm for this
-        # short, wide shape (8 x 1008: 10.9 vs 4.9 us); against a copy of V it is a gemm (same
-        # products in the same order, so still exactly symmetric).
-        frame_cov = V @ V.copy().T
-        C = self._cov
-        if all_ok:
-            okf = None  # every "* okf" below would multiply by 1.0
-            n_ok = self.n_channels
-        else:
-            n_ok = int(ok.sum())
-            if n_ok == 0:
-                return np.zeros(self.n_channels)
-            okf = ok.astype(np.float64)
-        # Bias-corrected exponential forgetting: m_t = lam m_{t-1} + 1, C_t = C_{t-1} + (F_t - C_{t-1}) / m_t,
-        # so the first frames are plain averages (no start-up transient towards zero).
-        self._mass = self._forget * self._mass + 1.0
-        rate = 1.0 / self._mass
-        if all_ok:
-            C += rate * (frame_cov - C)
-        else:
-            both = ok[:, None] & ok[None, :]
-            C[both] += rate * (frame_cov[both] - C[both])
-        d = C.diagonal()  # channel powers C_ii
-        d_max = float(d.max() if okf is None else (d * okf).max())
-        if not d_max > 0.0:
-            return self._ones_m / n_ok if okf is None else okf / n_ok
-        tiny = 1e-12 * d_max
-        scale = np.sqrt(d)
-        g = self._gain
-        if not g.max() > 0.0:
-            g = 0.5 * scale
-        # One damped alternating least-squares step of the rank-one fit C_ij ~ g_i g_j, i != j:
-        # g_i <- sum_{j != i} C_ij g_j / sum_{j != i} g_j^2, damped geometrically.
-        self._n_updates += 1
-        n_iter = self._startup_iter if self._n_updates <= self._startup_frames else 1
-        g_floor = 1e-6 * np.sqrt(d_max)
-        g_fit = g
-        for _ in range(n_iter):
-            gm = g_fit if okf is None else g_fit * okf
-            g2 = gm * gm
-            g_new = np.maximum(C @ gm - d * gm, 0.0) / (g2.sum() - g2 + tiny)
-            g_fit = np.minimum(np.maximum(np.sqrt(g_fit * g_new), g_floor), scale)  # g_i^2 <= C_ii
-        self._gain = g_fit if all_ok else np.where(ok, g_fit, self._gain)
-        noise = np.maximum(d - g_fit * g_fit, d * self._inv_snr_max)  # sigma_i^2, floored by the SNR cap
-        w = (g_fit if okf is None else g_fit * okf) / (noise + tiny)  # MRC: g_i / sigma_i^2
-        total = w.sum()
-        if not total > 0.0:
-            return self._ones_m / n_ok if okf is None else okf / n_ok
-        w /= total
-        if okf is None:
-            okf = self._ones_m
-        if self._weight_exponent != 1.0:  # w_i ~ (g_i / sigma_i^2)^p, between equal (0) and MRC (1)
-            w = w**self._weight_exponent * okf
-            w /= w.sum()
-        if self._weight_floor > 0:
-            w = np.maximum(w, self._weight_floor / n_ok) * okf
-            w /= w.sum()
-        return w
+        X = spectra.T
+        if not (X.dtype is _C64 and X.flags.carray and X.shape == self._xc_shape):
+            X = np.asarray(spectra)
+            if X.shape != self._x_shape:
+                raise ValueError(f"{X.shape=} must be ({self.n_bins}, {self.n_channels}) = (n_bins, n_channels)")
+            X = np.array(X.T, dtype=np.complex64, order="C")
+        if not (type(toa_s) is np.ndarray and toa_s.dtype is _F64 and toa_s.flags.carray
+                and toa_s.shape == self._m_shape):
+            toa = np.array(toa_s, dtype=np.float64, order="C")
+            if toa.shape != self._m_shape:
+                raise ValueError(f"{toa.shape=} must be ({self.n_channels},) = (n_channels,)")
+            toa_s = toa
+        if valid is None:
+            valid = self._all_valid
+        elif not (type(valid) is np.ndarray and valid.dtype is _BOOL and valid.flags.carray
+                  and valid.shape == self._m_shape):
+            ok = np.array(valid, dtype=np.bool_, order="C")
+            if ok.shape != self._m_shape:
+                raise ValueError(f"{ok.shape=} of valid must be ({self.n_channels},) = (n_channels,)")
+            valid = ok
+        return X, toa_s, valid
 
 
 def delay_and_sum(
@@ -466,8 +671,9 @@ def delay_and_sum(
     )
     S = stft(x, frame_samples=frame_samples, hop_samples=hop_samples, window=das.analysis_window)
     n_frames = S.shape[0]
-    toa = np.broadcast_to(np.asarray(toa_s, dtype=np.float64), (n_frames, x.shape[1]))
-    ok = None if valid is None else np.broadcast_to(np.asarray(valid, dtype=bool), (n_frames, x.shape[1]))
+    # Writeable C-contiguous rows (broadcast_to gives read-only views): no per-frame copies.
+    toa = np.array(np.broadcast_to(np.asarray(toa_s, dtype=np.float64), (n_frames, x.shape[1])), order="C")
+    ok = None if valid is None else np.array(np.broadcast_to(np.asarray(valid, dtype=bool), (n_frames, x.shape[1])))
     Y = np.empty((n_frames, das.n_bins), dtype=np.complex64)
     for k in range(n_frames):
         Y[k] = das.beamform_spectra(S[k], toa[k], None if ok is None else ok[k])

@@ -14,13 +14,18 @@ ratios only; competing paths are interleaved in alternating rounds so load chang
      ``tdoa(signal, reference) = toa_signal - toa_reference``.
 
 2. The full per-hop path of :meth:`stream.pipeline.Pipeline.process_block` (StreamingStft ->
-   GccPhat -> pair validity -> KalmanToa.update -> DelayAndSum.process_spectra, adaptive weighting,
-   options from :class:`stream.config.EngineConfig`) for 8 and 16 devices at 48 kHz (frame 4096,
-   hop 1024) and 16 kHz (frame 512, hop 128): median ms per hop, real-time factor
-   ``ms per hop / hop duration in ms``, and ``ratio_to_fft_floor``: path / floor, where the floor is
-   the FFTs the hop cannot avoid and nothing else, timed with ``scipy.fft`` (``workers=1``) on
-   float32 / complex64: M ``rfft`` of the frame, ``M (M - 1) / 2`` ``irfft`` for the pair
-   correlations, one ``irfft`` for the beamformer output.
+   GccPhat (with the device validity mask) -> KalmanToa.update -> DelayAndSum.process_spectra, options
+   from :class:`stream.config.EngineConfig`) for 8 and 16 devices at 48 kHz (frame 4096, hop 1024) and
+   16 kHz (frame 512, hop 128), with equal weights (the engine's default) and with adaptive weights:
+   median ms per hop, real-time factor ``ms per hop / hop duration in ms``, and
+   ``ratio_to_fft_floor``: path / floor, where the floor is the FFTs the hop cannot avoid and nothing
+   else: M ``rfft`` of the frame, ``M (M - 1) / 2`` ``irfft`` for the pair correlations, one ``irfft``
+   for the beamformer output, float32 / complex64. The stages compute their FFTs with pocketfft inside
+   compiled numba kernels (rocket-fft), so the floor is timed the same way: three compiled calls, one
+   per FFT group, as the three stages make them (``fft_floor_ms_*``). That is about half of what the
+   same FFTs cost through ``scipy.fft`` (``workers=1``), which is also timed and reported
+   (``scipy_fft_floor_ms_*``, ``ratio_to_scipy_fft_floor``): a path that merely switched to the faster
+   FFT binding would look better against the scipy floor without being leaner anywhere else.
 
 3. CPU share of one core, ``process_time / audio duration`` (median of runs over
    ``--cpu-audio-s`` seconds of audio): the bare path at 8 devices, 16 kHz, hop 128, and the whole
@@ -55,6 +60,7 @@ import tempfile  # noqa: E402
 import time  # noqa: E402
 from dataclasses import dataclass  # noqa: E402
 
+import numba  # noqa: E402
 import numpy as np  # noqa: E402
 import scipy.fft  # noqa: E402
 import scipy.signal  # noqa: E402
@@ -83,21 +89,23 @@ class PathConfig:
     frame_samples: int
     hop_samples: int
     max_tdoa_s: float | None = None  # None: the engine default (EngineConfig.max_tdoa_s)
+    weighting: str = "equal"         # the engine's default; "adaptive" is measured too
 
     @property
     def key(self) -> str:
-        return f"{self.n_devices}dev_{int(self.sample_rate_hz / 1000)}k_{self.frame_samples}"
+        base = f"{self.n_devices}dev_{int(self.sample_rate_hz / 1000)}k_{self.frame_samples}"
+        return base if self.weighting == "equal" else f"{base}_{self.weighting}"
 
     @property
     def hop_ms(self) -> float:
         return 1e3 * self.hop_samples / self.sample_rate_hz
 
 
-PATH_CONFIGS = (
-    PathConfig(8, 48_000.0, 4096, 1024),
-    PathConfig(16, 48_000.0, 4096, 1024),
-    PathConfig(8, 16_000.0, 512, 128),
-    PathConfig(16, 16_000.0, 512, 128),
+PATH_CONFIGS = tuple(
+    PathConfig(m, fs, frame, hop, weighting=w)
+    for w in ("equal", "adaptive")
+    for m, fs, frame, hop in ((8, 48_000.0, 4096, 1024), (16, 48_000.0, 4096, 1024),
+                              (8, 16_000.0, 512, 128), (16, 16_000.0, 512, 128))
 )
 # Overhead probe: the same chain on 64-sample frames, where every FFT is nearly free, so its time is
 # the per-hop cost that does not scale with the frame (Python and numpy call overhead). Reported,
@@ -161,15 +169,13 @@ class HopPath:
     def __init__(self, cfg: PathConfig) -> None:
         extra = {} if cfg.max_tdoa_s is None else {"max_tdoa_s": cfg.max_tdoa_s}
         engine = EngineConfig(working_rate_hz=cfg.sample_rate_hz, frame_samples=cfg.frame_samples,
-                              hop_samples=cfg.hop_samples, weighting="adaptive", **extra).resolved(cfg.sample_rate_hz)
+                              hop_samples=cfg.hop_samples, weighting=cfg.weighting, **extra).resolved(cfg.sample_rate_hz)
         m, fs = cfg.n_devices, cfg.sample_rate_hz
         self.stft = beamform.StreamingStft(m, frame_samples=cfg.frame_samples, hop_samples=cfg.hop_samples)
         self.gcc = estimators.GccPhat(m, n_fft=cfg.frame_samples, sample_rate_hz=fs, max_tdoa_s=engine.max_tdoa_s)
         self.estimator = make_estimator(engine, m)
         self.das = beamform.DelayAndSum(m, frame_samples=cfg.frame_samples, hop_samples=cfg.hop_samples,
                                         sample_rate_hz=fs, weighting=engine.weighting)
-        p = estimators.pairs(m)
-        self._pi, self._pj = p[:, 0], p[:, 1]
         self.valid = np.ones(m, bool)
         self.n_hops = self.n_updates = self.n_gated = 0
         self.toa_s = np.zeros(m)
@@ -177,8 +183,7 @@ class HopPath:
     def hop(self, block: np.ndarray) -> np.ndarray:
         valid = self.valid
         spectra = self.stft.process(block)
-        tdoa_s, confidence = self.gcc.process(spectra)
-        confidence = np.where(valid[self._pi] & valid[self._pj], confidence, 0.0)
+        tdoa_s, confidence = self.gcc.process(spectra, valid=valid)
         fine = self.estimator.update(tdoa_s, confidence)
         out = self.das.process_spectra(spectra, fine, valid=valid)
         self.toa_s = fine
@@ -191,23 +196,14 @@ class HopPath:
         t0 = perf()
         spectra = self.stft.process(block)
         t1 = perf()
-        tdoa_s, confidence = self.gcc.process(spectra)
+        tdoa_s, confidence = self.gcc.process(spectra, valid=valid)
         t2 = perf()
-        confidence = np.where(valid[self._pi] & valid[self._pj], confidence, 0.0)
         fine = self.estimator.update(tdoa_s, confidence)
         t3 = perf()
-        istft = getattr(self.das, "_istft", None)  # private: the split is diagnostic only
-        if istft is not None:
-            Y = self.das.beamform_spectra(spectra, fine, valid)
-            t4 = perf()
-            out = istft.process(Y)
-        else:
-            out = self.das.process_spectra(spectra, fine, valid=valid)
-            t4 = perf()
-        t5 = perf()
+        out = self.das.process_spectra(spectra, fine, valid=valid)
+        t4 = perf()
         self.toa_s = fine
-        for name, a, b in (("stft", t0, t1), ("gcc", t1, t2), ("kalman", t2, t3), ("das_beamform", t3, t4),
-                           ("das_synthesis", t4, t5)):
+        for name, a, b in (("stft", t0, t1), ("gcc", t1, t2), ("kalman", t2, t3), ("das", t3, t4)):
             times[name].append(b - a)
         return out
 
@@ -220,8 +216,22 @@ class HopPath:
                               and not est.reinitialised)
 
 
+@numba.njit(cache=True, nogil=True)
+def _rfft_rows(x):
+    return np.fft.rfft(x)
+
+
+@numba.njit(cache=True, nogil=True)
+def _irfft_rows(c, n):
+    return np.fft.irfft(c, n)
+
+
 class Floor:
-    """The FFTs one hop must do: M rfft of the frame, n_pairs irfft, 1 irfft (float32/complex64)."""
+    """The FFTs one hop must do: M rfft of the frame, n_pairs irfft, 1 irfft (float32/complex64).
+
+    ``ffts`` makes them as the stages do, with pocketfft inside three compiled calls (one per FFT
+    group: analysis, pair correlations, synthesis); ``scipy_ffts`` through ``scipy.fft``.
+    """
 
     def __init__(self, cfg: PathConfig) -> None:
         m, n = cfg.n_devices, cfg.frame_samples
@@ -238,6 +248,12 @@ class Floor:
         self.frame[...] = frame_time_major.T
 
     def ffts(self) -> None:
+        n = self.n
+        _rfft_rows(self.frame)
+        _irfft_rows(self.cross, n)
+        _irfft_rows(self.out, n)
+
+    def scipy_ffts(self) -> None:
         n = self.n
         scipy.fft.rfft(self.frame, axis=-1, workers=1)
         scipy.fft.irfft(self.cross, n=n, axis=-1, workers=1)
@@ -324,7 +340,7 @@ def bench_gcc(repeats: int, frames_per_round: int) -> dict:
 
 
 # ---------------------------------------------------------------------------------------- path
-STAGES = ("stft", "gcc", "kalman", "das_beamform", "das_synthesis")
+STAGES = ("stft", "gcc", "kalman", "das")
 
 
 def bench_paths(repeats: int, hops_per_round: int, audio_s: float) -> tuple[dict, list[dict]]:
@@ -347,24 +363,26 @@ def bench_paths(repeats: int, hops_per_round: int, audio_s: float) -> tuple[dict
         floor.load(audio[: cfg.frame_samples])
         for _ in range(20):
             floor.ffts()
+            floor.scipy_ffts()
         path.n_hops = path.n_updates = path.n_gated = 0
         state[cfg] = dict(audio=audio, toa=toa, n_hops=n_hops, pos=pos, path=path, floor=floor,
-                          t_path=[], t_floor=[], toa_err=[], stages={name: [] for name in STAGES})
+                          t_path=[], t_floor=[], t_scipy=[], toa_err=[], stages={name: [] for name in STAGES})
 
     perf = time.perf_counter
     for r in range(repeats):
         for cfg in (configs if r % 2 == 0 else configs[::-1]):
             s = state[cfg]
             path, floor, audio, hop, n_hops = s["path"], s["floor"], s["audio"], cfg.hop_samples, s["n_hops"]
-            runs = ("floor", "path") if r % 4 < 2 else ("path", "floor")
+            runs = ("floor", "scipy", "path") if r % 4 < 2 else ("path", "scipy", "floor")
             for what in runs:
-                if what == "floor":
+                if what in ("floor", "scipy"):
                     start = (s["pos"] * hop) % (len(audio) - cfg.frame_samples)
                     floor.load(audio[start:start + cfg.frame_samples])
+                    ffts, times = (floor.ffts, s["t_floor"]) if what == "floor" else (floor.scipy_ffts, s["t_scipy"])
                     for _ in range(hops_per_round):
                         t0 = perf()
-                        floor.ffts()
-                        s["t_floor"].append(perf() - t0)
+                        ffts()
+                        times.append(perf() - t0)
                 else:
                     pos = s["pos"]
                     for _ in range(hops_per_round):
@@ -392,12 +410,15 @@ def bench_paths(repeats: int, hops_per_round: int, audio_s: float) -> tuple[dict
         key = cfg.key
         path_ms = 1e3 * float(np.median(s["t_path"]))
         floor_ms = 1e3 * float(np.median(s["t_floor"]))
+        scipy_floor_ms = 1e3 * float(np.median(s["t_scipy"]))
         p = s["path"]
         row = {
             "config": key, "n_devices": cfg.n_devices, "rate_khz": cfg.sample_rate_hz / 1000,
             "frame": cfg.frame_samples, "hop": cfg.hop_samples, "hop_ms": cfg.hop_ms,
             "path_ms": path_ms, "path_p90_ms": 1e3 * float(np.percentile(s["t_path"], 90)),
             "floor_ms": floor_ms, "ratio": path_ms / floor_ms, "rtf": path_ms / cfg.hop_ms,
+            "scipy_floor_ms": scipy_floor_ms, "ratio_scipy": path_ms / scipy_floor_ms,
+            "weighting": cfg.weighting,
             "n_hops": len(s["t_path"]),
             "update_fraction": p.n_updates / max(p.n_hops, 1),
             "gated_fraction": p.n_gated / max(p.n_hops, 1),
@@ -410,10 +431,14 @@ def bench_paths(repeats: int, hops_per_round: int, audio_s: float) -> tuple[dict
         out[f"fft_floor_ms_{key}"] = floor_ms
         out[f"rtf_{key}"] = row["rtf"]
         out[f"ratio_to_fft_floor_{key}"] = row["ratio"]
+        out[f"scipy_fft_floor_ms_{key}"] = scipy_floor_ms
+        out[f"ratio_to_scipy_fft_floor_{key}"] = row["ratio_scipy"]
         out[f"kalman_update_fraction_{key}"] = row["update_fraction"]
         out[f"toa_err_median_samples_{key}"] = row["toa_err_median_samples"]
         out[f"stages_ms_{key}"] = row["stages_ms"]
     out["ratio_to_fft_floor"] = max(r["ratio"] for r in rows if not r["probe"])
+    out["ratio_to_fft_floor_equal"] = max(r["ratio"] for r in rows if not r["probe"] and r["weighting"] == "equal")
+    out["ratio_to_scipy_fft_floor"] = max(r["ratio_scipy"] for r in rows if not r["probe"])
     return out, rows
 
 
@@ -421,7 +446,7 @@ def bench_paths(repeats: int, hops_per_round: int, audio_s: float) -> tuple[dict
 def bench_cpu_path(repeats: int, audio_s: float) -> dict:
     """process_time and thread_time of the bare path over ``audio_s`` of audio, fresh stages per run."""
     m, fs, frame, hop = CPU_CONFIG
-    cfg = PathConfig(m, fs, frame, hop)
+    cfg = PathConfig(m, fs, frame, hop, weighting="adaptive")  # the costlier weighting, as the engine run
     audio, _ = scene(m, fs, audio_s, SEED + 100)
     n_hops = len(audio) // hop
     blocks = [audio[k * hop:(k + 1) * hop] for k in range(n_hops)]
@@ -552,7 +577,6 @@ def engine_split(wavs: list[pathlib.Path], out_dir: pathlib.Path, config: Engine
     wrap(estimators.GccPhat, "process", "process_block.gcc")
     wrap(type(make_estimator(EngineConfig().resolved(16_000.0), 8)), "update", "process_block.kalman")
     wrap(beamform.DelayAndSum, "process_spectra", "process_block.das")
-    wrap(stream.pipeline.Pipeline, "_pair_valid", "process_block.pair_valid")
     wrap(stream.pipeline.Pipeline, "_recentre", "process_block.recentre")
     wrap(stream.pipeline.Pipeline, "_record", "process_block.record")
     wrap(stream.sinks.WavSink, "write", "process_block.sinks")
@@ -603,6 +627,7 @@ def machine(load_start: tuple, load_end: tuple) -> dict:
         "python": sys.version.split()[0],
         "numpy": np.__version__,
         "scipy": scipy.__version__,
+        "numba": numba.__version__,
         "openblas_num_threads": os.environ.get("OPENBLAS_NUM_THREADS"),
     }
 
@@ -651,23 +676,27 @@ def main(argv: list[str] | None = None) -> int:
           f"{gcc['pra_median_abs_err_samples']:14.3f} {gcc['pra_within_1_sample']:8.1%}")
     print(f"  speed-up vs pyroomacoustics: {gcc['gcc_speedup_vs_pra']:.1f}x   (target gcc <= 1 ms)")
     print()
-    print("Full per-hop path (StreamingStft + GccPhat + KalmanToa + DelayAndSum, adaptive) vs FFT floor")
-    print(f"  {'config':<16} {'hop ms':>7} {'path ms':>8} {'p90 ms':>7} {'floor ms':>9} {'ratio':>6} "
-          f"{'RTF':>7} {'updated':>8} {'TOA err':>8} {'hops':>6}")
+    print("Full per-hop path (StreamingStft + GccPhat + KalmanToa + DelayAndSum) vs FFT floor")
+    print(f"  {'config':<26} {'hop ms':>7} {'path ms':>8} {'p90 ms':>7} {'floor ms':>9} {'ratio':>6} "
+          f"{'scipy floor':>11} {'ratio':>6} {'RTF':>7} {'updated':>8} {'TOA err':>8} {'hops':>6}")
     for r in rows:
-        print(f"  {r['config']:<16} {r['hop_ms']:7.2f} {r['path_ms']:8.3f} {r['path_p90_ms']:7.3f} "
-              f"{r['floor_ms']:9.3f} {r['ratio']:6.2f} {r['rtf']:7.4f} {r['update_fraction']:8.1%} "
-              f"{r['toa_err_median_samples']:8.3f} {r['n_hops']:6d}")
-    print(f"  max ratio to FFT floor: {paths['ratio_to_fft_floor']:.2f}   (target <= 2; "
-          f"{OVERHEAD_PROBE.key} is the overhead probe, not in the max)")
+        print(f"  {r['config']:<26} {r['hop_ms']:7.2f} {r['path_ms']:8.3f} {r['path_p90_ms']:7.3f} "
+              f"{r['floor_ms']:9.3f} {r['ratio']:6.2f} {r['scipy_floor_ms']:11.3f} {r['ratio_scipy']:6.2f} "
+              f"{r['rtf']:7.4f} {r['update_fraction']:8.1%} {r['toa_err_median_samples']:8.3f} {r['n_hops']:6d}")
+    print(f"  max ratio to FFT floor: {paths['ratio_to_fft_floor']:.2f} (equal weights: "
+          f"{paths['ratio_to_fft_floor_equal']:.2f}; against the scipy.fft floor: "
+          f"{paths['ratio_to_scipy_fft_floor']:.2f})   (target <= 2; {OVERHEAD_PROBE.key} is the overhead "
+          "probe, not in the max)")
+    print("  (floor: the same FFTs in compiled pocketfft calls, as the stages make them; scipy floor: through "
+          "scipy.fft)")
     print("  (TOA err: median over hops of max_i |toa_i - truth_i| in samples; updated: hops with an accepted "
           "Kalman update)")
     print()
     print("Per-stage median ms (separate pass with a clock between stages)")
-    print(f"  {'config':<16} " + " ".join(f"{name:>13}" for name in STAGES) + f" {'sum':>7} {'floor':>7}")
+    print(f"  {'config':<26} " + " ".join(f"{name:>13}" for name in STAGES) + f" {'sum':>7} {'floor':>7}")
     for r in rows:
         st = r["stages_ms"]
-        print(f"  {r['config']:<16} " + " ".join(f"{st.get(name, float('nan')):13.3f}" for name in STAGES)
+        print(f"  {r['config']:<26} " + " ".join(f"{st.get(name, float('nan')):13.3f}" for name in STAGES)
               + f" {sum(st.values()):7.3f} {r['floor_ms']:7.3f}")
     print()
     print(f"CPU share of one core, 8 devices, 16 kHz, frame 512 / hop 128, {cpu['cpu_runs_audio_s']:.1f} s of audio, "

@@ -23,9 +23,9 @@ from __future__ import annotations
 import collections
 import math
 
+import numba
 import numpy as np
 import scipy.linalg
-import scipy.linalg.lapack
 import scipy.stats
 from filterpy.common import Q_continuous_white_noise
 from filterpy.kalman import KalmanFilter
@@ -60,8 +60,8 @@ class _PairModel:
         self._H0_pinv = np.linalg.pinv(self._H0)  # (H0^T H0)^-1 H0^T, shape (M-1, n_pairs)
         self._zero = np.zeros(1)
 
-    def _inputs(self, tdoa_s, confidence) -> tuple[np.ndarray, np.ndarray | None]:
-        """Validated ``(tdoa_s, used)``; ``used`` is ``None`` when every pair is usable."""
+    def _as_pairs(self, tdoa_s, confidence) -> tuple[np.ndarray, np.ndarray | None]:
+        """``(tdoa_s, confidence)`` as float64 arrays of shape ``(n_pairs,)`` (``None`` stays ``None``)."""
         tdoa = np.asarray(tdoa_s, dtype=np.float64)
         if tdoa.shape != (self.n_pairs,):
             raise ValueError(f"tdoa_s.shape={tdoa.shape} must be (n_pairs,)=({self.n_pairs},)")
@@ -70,6 +70,11 @@ class _PairModel:
             conf = np.asarray(confidence, dtype=np.float64)
             if conf.shape != (self.n_pairs,):
                 raise ValueError(f"confidence.shape={conf.shape} must be (n_pairs,)=({self.n_pairs},)")
+        return tdoa, conf
+
+    def _inputs(self, tdoa_s, confidence) -> tuple[np.ndarray, np.ndarray | None]:
+        """Validated ``(tdoa_s, used)``; ``used`` is ``None`` when every pair is usable."""
+        tdoa, conf = self._as_pairs(tdoa_s, confidence)
         # Fast path, every pair usable: a finite sum means no NaN/inf TDOA (a sum of finite TDOAs
         # overflows only near 1e308 s, which then takes the exact test below) and a NaN confidence
         # makes the minimum NaN, which compares False. Two reductions instead of four numpy calls.
@@ -198,6 +203,328 @@ class PinvToa(_PairModel):
         return self._toa(self._wls(tdoa, weights))
 
 
+# -- compiled per-frame step of KalmanToa ----------------------------------------------------------
+
+# Slots of KalmanToa._params, constants fixed at construction.
+_P_DT = 0                  # frame period dt, s
+_P_Q11 = 1                 # eq. (16) Q = [[q11 I, q12 I], [q12 I, q22 I]]: q dt^3 / 3, s^2 (TOA variance)
+_P_Q12 = 2                 # q dt^2 / 2, s (TOA-rate covariance)
+_P_Q22 = 3                 # q dt, (s/s)^2 (rate variance)
+_P_TDOA_VAR = 4            # nominal pair variance tdoa_std_s^2, s^2
+_P_MIN_CONFIDENCE = 5
+_P_CONFIDENCE_WEIGHTED = 6  # 1.0 or 0.0
+_P_PAIR_GATE_SIGMA = 7     # inf when off
+_P_REINIT_AFTER = 8        # reinit_after_n_gated, inf when off
+_P_GATE = 9                # eq. (17) thresholds chi2.ppf(gate_probability, k) for k = 0..n_pairs (k = 0: inf)
+
+# Slots of KalmanToa._status: per-frame results and counters, written by _kalman_step (counts are
+# stored as float64, exact below 2^53).
+_S_INITIALISED = 0
+_S_GATED = 1
+_S_REINITIALISED = 2
+_S_N_GATED = 3
+_S_N_REINIT = 4
+_S_N_PAIRS_GATED = 5
+_S_N_PAIRS_USED = 6
+_S_MAHALANOBIS_SQ = 7
+_S_CONSECUTIVE_GATED = 8
+_N_STATUS = 9
+
+# Return codes of _kalman_step.
+_DONE = 0
+_INITIALISE = 1            # (re-)initialise from the used pairs left in work[:2 n_pairs]
+_BAD_TDOA_SHAPE = 2
+_BAD_CONFIDENCE_SHAPE = 3
+_SINGULAR = 4
+
+
+def _work_size(m: int) -> int:
+    """Length of the float64 work buffer of :func:`_kalman_step` for ``m = n_mics - 1``."""
+    n_pairs = m * (m + 1) // 2
+    # y, w (n_pairs each); b (m); B (m x m); B P_prior[:m] (m x 2m); [T, B, b] (m x (2m + 1));
+    # [G, g] (m x (m + 1)); K^T ((m + 1) x 2m); the covariance correction (2m x 2m)
+    return 2 * n_pairs + m + m * m + 2 * m * m + m * (2 * m + 1) + m * (m + 1) + 2 * m * (m + 1) + 4 * m * m
+
+
+@numba.njit(cache=True, nogil=True)
+def _predict(x, P, x_prior, P_prior, dt, q11, q12, q22):
+    """eq. (13) with the blocks of eq. (16): ``x_prior = F x``, ``P_prior = F P F^T + Q``.
+
+    With ``F = [[I, dt I], [0, I]]`` and ``P = [[A, C], [C^T, D]]`` (``m x m`` blocks)::
+
+        F P F^T = [[A + dt (C + C^T) + dt^2 D,  C + dt D],
+                   [C^T + dt D,                 D       ]]
+
+    O(m^2) instead of two dense ``2m x 2m`` products. Each element's expression is symmetric in
+    its two indices, so a symmetric ``P`` gives an exactly symmetric ``P_prior``.
+    """
+    m = x.shape[0] // 2
+    dt2 = dt * dt
+    for a in range(m):
+        x_prior[a] = x[a] + dt * x[m + a]
+        x_prior[m + a] = x[m + a]
+    for a in range(m):
+        for c in range(m):
+            P_prior[a, c] = P[a, c] + dt * (P[m + a, c] + P[a, m + c]) + dt2 * P[m + a, m + c]
+            P_prior[a, m + c] = P[a, m + c] + dt * P[m + a, m + c]
+            P_prior[m + a, c] = P[m + a, c] + dt * P[m + a, m + c]
+            P_prior[m + a, m + c] = P[m + a, m + c]
+        P_prior[a, a] += q11
+        P_prior[a, m + a] += q12
+        P_prior[m + a, a] += q12
+        P_prior[m + a, m + a] += q22
+
+
+@numba.njit(cache=True, nogil=True)
+def _copy_prior(x, P, x_prior, P_prior):
+    """``x, P = x_prior, P_prior`` (prediction only), element by element."""
+    n = x.shape[0]
+    for a in range(n):
+        x[a] = x_prior[a]
+        for c in range(n):
+            P[a, c] = P_prior[a, c]
+
+
+@numba.njit(cache=True, nogil=True)
+def _pair_gate(y, w, x_prior, P_prior, sigma, status):
+    """Per-pair gate: drop pair ``p = (i, j)`` (``w_p = 0``) when
+    ``|y_p - (x_i - x_j)| > sigma sqrt(P_ii + P_jj - 2 P_ij + 1 / w_p)`` (TOA block of the prior,
+    index ``k`` of microphone ``k + 1``, terms of microphone 0 absent). Returns the pairs left."""
+    m = x_prior.shape[0] // 2
+    n_used = 0
+    p = 0
+    for i in range(m + 1):
+        for j in range(i + 1, m + 1):
+            if w[p] != 0.0:
+                jj = j - 1
+                pred = -x_prior[jj]
+                spread = P_prior[jj, jj]
+                if i > 0:
+                    ii = i - 1
+                    pred += x_prior[ii]
+                    spread += P_prior[ii, ii] - 2.0 * P_prior[ii, jj]
+                spread += 1.0 / w[p]
+                if abs(y[p] - pred) <= sigma * math.sqrt(spread):
+                    n_used += 1
+                else:
+                    w[p] = 0.0
+                    status[_S_N_PAIRS_GATED] += 1.0
+            p += 1
+    return n_used
+
+
+@numba.njit(cache=True, nogil=True)
+def _information_update(y, w, x, P, x_prior, P_prior, gate, status, work):
+    """Gate (eq. 17) and measurement update (eq. 14) in information form.
+
+    With ``W = diag(w)``, ``v = y - H0 x_prior[:m]`` and ``P_pp`` the TOA block of ``P_prior``:
+    ``B = H0^T W H0`` (the weighted graph Laplacian of the pairs without row and column 0),
+    ``b = H0^T W v``, ``T = I + B P_pp``; Gaussian elimination with partial pivoting solves
+    ``T [G, g] = [B, b]``, then ``K = P_prior[:, :m] [G, g]`` and::
+
+        d2 = v^T W v - b^T K[:m, m]               (= v^T S^-1 v, eq. 17)
+        x  = x_prior + K[:, m]                    (= x_prior + P H^T S^-1 v)
+        P  = P_prior - K[:, :m] P_prior[:m, :]    (= P_prior - P H^T S^-1 H P)
+
+    ``P`` symmetrised. ``P_prior`` is symmetric, so ``P_prior[:m, :]`` (contiguous rows) stands for
+    ``P_prior[:, :m]^T`` and the products are BLAS calls on contiguous blocks. Returns 1
+    (updated), 0 (gated: ``x``, ``P`` untouched) or -1 (``T`` singular). Writes ``d2`` to the status.
+    """
+    m = x.shape[0] // 2
+    n_pairs = y.shape[0]
+    ncol = 2 * m + 1
+    off = 2 * n_pairs
+    b = work[off:off + m]
+    off += m
+    B = work[off:off + m * m].reshape((m, m))
+    off += m * m
+    BP = work[off:off + 2 * m * m].reshape((m, 2 * m))  # B P_prior[:m, :]
+    off += 2 * m * m
+    A = work[off:off + m * ncol].reshape((m, ncol))  # [T, B, b], eliminated in place
+    off += m * ncol
+    X = work[off:off + m * (m + 1)].reshape((m, m + 1))  # [G, g]
+    off += m * (m + 1)
+    KT = work[off:off + 2 * m * (m + 1)].reshape((m + 1, 2 * m))  # (P_prior[:, :m] [G, g])^T
+    off += 2 * m * (m + 1)
+    C = work[off:off + 4 * m * m].reshape((2 * m, 2 * m))  # K[:, :m] P_prior[:m, :]
+    for a in range(m):
+        B[a, a] = 0.0
+        b[a] = 0.0
+    # B and b from the pairs: pair (i, j) has H0 row e_i - e_j (column i - 1; microphone 0 has
+    # none), so it adds w_p to B[i-1, i-1] and B[j-1, j-1] and is alone at B[i-1, j-1] = -w_p
+    vwv = 0.0
+    p = 0
+    for i in range(m + 1):
+        xi = x_prior[i - 1] if i > 0 else 0.0
+        for j in range(i + 1, m + 1):
+            wp = w[p]
+            jj = j - 1
+            if i > 0:
+                B[i - 1, jj] = -wp
+                B[jj, i - 1] = -wp
+            if wp != 0.0:
+                v = y[p] - (xi - x_prior[jj])
+                wv = wp * v
+                vwv += v * wv
+                B[jj, jj] += wp
+                b[jj] -= wv
+                if i > 0:
+                    B[i - 1, i - 1] += wp
+                    b[i - 1] += wv
+            p += 1
+    # T = I + B P_pp
+    np.dot(B, P_prior[:m], BP)
+    for a in range(m):
+        for c in range(m):
+            A[a, c] = BP[a, c]
+            A[a, m + c] = B[a, c]
+        A[a, a] += 1.0
+        A[a, 2 * m] = b[a]
+    # forward elimination with partial pivoting on [T, B, b]
+    for k in range(m):
+        piv = k
+        big = abs(A[k, k])
+        for r in range(k + 1, m):
+            val = abs(A[r, k])
+            if val > big:
+                big = val
+                piv = r
+        if big == 0.0:
+            return -1
+        if piv != k:
+            for c in range(k, ncol):
+                tmp = A[k, c]
+                A[k, c] = A[piv, c]
+                A[piv, c] = tmp
+        inv = 1.0 / A[k, k]
+        for r in range(k + 1, m):
+            f = A[r, k] * inv
+            if f != 0.0:
+                for c in range(k + 1, ncol):
+                    A[r, c] -= f * A[k, c]
+    # back substitution into X = [G, g]
+    for k in range(m - 1, -1, -1):
+        for c in range(m + 1):
+            X[k, c] = A[k, m + c]
+        for r in range(k + 1, m):
+            f = A[k, r]
+            if f != 0.0:
+                for c in range(m + 1):
+                    X[k, c] -= f * X[r, c]
+        d = A[k, k]
+        for c in range(m + 1):
+            X[k, c] /= d
+    np.dot(X.T, P_prior[:m], KT)
+    d2 = vwv
+    for a in range(m):
+        d2 -= b[a] * KT[m, a]
+    status[_S_MAHALANOBIS_SQ] = d2
+    if d2 > gate:
+        return 0
+    for a in range(2 * m):
+        x[a] = x_prior[a] + KT[m, a]
+    np.dot(KT[:m].T, P_prior[:m], C)
+    for a in range(2 * m):
+        for c in range(a + 1):
+            P[a, c] = P[c, a] = P_prior[a, c] - 0.5 * (C[a, c] + C[c, a])
+    return 1
+
+
+_RO_PAIRS = numba.types.Array(numba.types.float64, 1, "A", readonly=True)  # any float64 (n_pairs,) input
+_VEC = numba.types.float64[::1]
+_MAT = numba.types.float64[:, ::1]
+
+
+@numba.njit(numba.types.int64(_RO_PAIRS, _RO_PAIRS, _VEC, _MAT, _VEC, _MAT, _VEC, _VEC, _VEC, _VEC),
+            cache=True, nogil=True)
+def _kalman_step(tdoa, confidence, x, P, x_prior, P_prior, params, status, toa_out, work):
+    """One frame of :class:`KalmanToa`: used pairs, predict (eq. 13), gate (eq. 17), update (eq. 14).
+
+    A pair is used when its TDOA is finite and ``confidence_p > min_confidence`` (NaN excluded);
+    its weight is ``w_p = 1 / tdoa_var``, or ``confidence_p / tdoa_var`` when confidence-weighted,
+    and 0 when unused. ``y`` (TDOAs, 0 when unused) and ``w`` are left in ``work[:2 n_pairs]`` for
+    a (re-)initialisation. Not yet initialised: only that. Initialised: :func:`_predict`; with no
+    used pair ``x, P = x_prior, P_prior``; else the optional :func:`_pair_gate`, then
+    :func:`_information_update`, or ``x, P = x_prior, P_prior`` when gated. Writes the counters to
+    ``status`` and ``[0, x[:m]]`` to ``toa_out``.
+
+    Returns
+    -------
+    int
+        ``_DONE``; ``_INITIALISE`` when the caller must try to (re-)initialise (not initialised
+        with a used pair, or ``reinit_after_n_gated`` consecutive gated frames);
+        ``_BAD_TDOA_SHAPE`` / ``_BAD_CONFIDENCE_SHAPE`` (nothing changed); ``_SINGULAR``.
+    """
+    m = x.shape[0] // 2
+    n_pairs = m * (m + 1) // 2
+    if tdoa.shape[0] != n_pairs:
+        return _BAD_TDOA_SHAPE
+    if confidence.shape[0] != n_pairs:
+        return _BAD_CONFIDENCE_SHAPE
+    status[_S_GATED] = 0.0
+    status[_S_REINITIALISED] = 0.0
+    status[_S_MAHALANOBIS_SQ] = np.nan
+    y = work[:n_pairs]
+    w = work[n_pairs:2 * n_pairs]
+    tdoa_var = params[_P_TDOA_VAR]
+    min_confidence = params[_P_MIN_CONFIDENCE]
+    weighted = params[_P_CONFIDENCE_WEIGHTED] != 0.0
+    w_nominal = 1.0 / tdoa_var
+    n_used = 0
+    for p in range(n_pairs):
+        t = tdoa[p]
+        c = confidence[p]
+        if math.isfinite(t) and c > min_confidence:  # NaN confidence compares False: excluded
+            y[p] = t
+            w[p] = c / tdoa_var if weighted else w_nominal
+            n_used += 1
+        else:
+            y[p] = 0.0
+            w[p] = 0.0
+    status[_S_N_PAIRS_USED] = n_used
+    code = _DONE
+    if status[_S_INITIALISED] == 0.0:
+        if n_used > 0:
+            code = _INITIALISE
+    else:
+        _predict(x, P, x_prior, P_prior, params[_P_DT], params[_P_Q11], params[_P_Q12], params[_P_Q22])
+        updated = 0
+        if n_used > 0:
+            if params[_P_PAIR_GATE_SIGMA] < math.inf:
+                n_used = _pair_gate(y, w, x_prior, P_prior, params[_P_PAIR_GATE_SIGMA], status)
+            if n_used > 0:
+                updated = _information_update(y, w, x, P, x_prior, P_prior, params[_P_GATE + n_used],
+                                              status, work)
+        if updated == 1:
+            status[_S_CONSECUTIVE_GATED] = 0.0
+        else:  # prediction only
+            _copy_prior(x, P, x_prior, P_prior)
+            if updated == -1:
+                code = _SINGULAR
+            elif status[_S_N_PAIRS_USED] > 0.0:  # gated (eq. 17, or every pair by the pair gate)
+                status[_S_GATED] = 1.0
+                status[_S_N_GATED] += 1.0
+                status[_S_CONSECUTIVE_GATED] += 1.0
+                if status[_S_CONSECUTIVE_GATED] >= params[_P_REINIT_AFTER]:
+                    code = _INITIALISE
+    toa_out[0] = 0.0
+    for a in range(m):
+        toa_out[a + 1] = x[a]
+    return code
+
+
+def _status_attribute(slot: int, kind: type, doc: str) -> property:
+    """Public attribute kept in ``KalmanToa._status[slot]``, where the compiled step writes it."""
+
+    def get(self):
+        return kind(self._status[slot])
+
+    def set_(self, value) -> None:
+        self._status[slot] = value
+
+    return property(get, set_, doc=doc)
+
+
 class KalmanToa(_PairModel):
     """Kalman filter on the relative TOA with clutter gating (TOA paper eqs. 13-17).
 
@@ -262,6 +589,8 @@ class KalmanToa(_PairModel):
         Totals since construction or :meth:`reset`.
     n_pairs_used : int
         Pairs used by the last update.
+    n_pairs_gated : int
+        Pairs left out by the per-pair gate (``pair_gate_sigma``) since construction or :meth:`reset`.
     last_mahalanobis_sq : float
         ``v^T S^-1 v`` of the last measurement (NaN when none was evaluated).
 
@@ -271,16 +600,16 @@ class KalmanToa(_PairModel):
     every microphone gives the state ``[pinv estimate, 0]`` with covariance
     ``blockdiag((H0^T R^-1 H0)^-1, initial_rate_std**2 I)``; until then :meth:`update` returns zeros.
 
-    The prediction is ``filterpy.kalman.KalmanFilter.predict``. The measurement update is written
-    here in information form: filterpy's generic update inverts the ``n_pairs x n_pairs`` matrix
-    ``S`` (120 x 120 at 16 microphones) and the gate would need ``S`` once more before deciding;
-    since ``H = [H0, 0]`` and ``R`` is diagonal, the same posterior and Mahalanobis distance follow
-    from one ``(M-1) x (M-1)`` solve (see :meth:`_measurement_update`). The test suite checks it
-    against ``KalmanFilter.update``. The prediction runs the same ``dot`` calls as
-    ``KalmanFilter.predict`` (hence the same values) without its per-call overhead. The filter never
-    modifies its arrays in place (every step binds new ones), so ``x_prior``/``x_post`` and
-    ``P_prior``/``P_post`` of the filterpy object share them with ``x`` and ``P`` instead of
-    copying.
+    Each :meth:`update` (and :meth:`predict`) is one compiled call, :func:`_kalman_step`: pair
+    selection, prediction (eq. 13 with the block structure of ``F`` and ``Q``, O(M^2)), clutter gate
+    and measurement update. The update is written in information form: filterpy's generic update
+    inverts the ``n_pairs x n_pairs`` matrix ``S`` (120 x 120 at 16 microphones) and the gate would
+    need ``S`` once more before deciding; since ``H = [H0, 0]`` and ``R`` is diagonal, the same
+    posterior and Mahalanobis distance follow from one ``(M-1) x (M-1)`` solve (see
+    :func:`_information_update`). The test suite checks both steps against
+    ``filterpy.kalman.KalmanFilter``. The filterpy object ``_kf`` holds the state: the step writes
+    ``x``, ``P``, ``x_prior`` and ``P_prior`` in place (``x_post`` and ``P_post`` are the same arrays
+    as ``x`` and ``P``), so copy them to keep them. (Re-)initialisation runs in numpy.
     """
 
     def __init__(
@@ -339,27 +668,55 @@ class KalmanToa(_PairModel):
             dim=2, dt=dt, spectral_density=self.accel_std_s_per_s2**2, block_size=m, order_by_dim=False
         )
         self._tdoa_var = self.tdoa_std_s**2
-        # eq. (12) information matrix with all pairs at the nominal variance: H0^T R^-1 H0.
-        self._B_all = self._H0T @ self._H0 / self._tdoa_var
         # eq. (17) gate: chi-square quantile for k = 0..n_pairs used pairs.
         if gate_probability is None:
-            self._gate = np.full(self.n_pairs + 1, np.inf)
+            gate = np.full(self.n_pairs + 1, np.inf)
         else:
-            self._gate = np.concatenate(
-                [[np.inf], scipy.stats.chi2.ppf(gate_probability, np.arange(1, self.n_pairs + 1))]
-            )
+            gate = np.concatenate([[np.inf], scipy.stats.chi2.ppf(gate_probability, np.arange(1, self.n_pairs + 1))])
+        params = np.empty(_P_GATE + self.n_pairs + 1)
+        params[_P_DT] = dt
+        params[_P_Q11], params[_P_Q12], params[_P_Q22] = self._Q[0, 0], self._Q[0, m], self._Q[m, m]
+        params[_P_TDOA_VAR] = self._tdoa_var
+        params[_P_MIN_CONFIDENCE] = self.min_confidence
+        params[_P_CONFIDENCE_WEIGHTED] = float(self.confidence_weighted)
+        params[_P_PAIR_GATE_SIGMA] = np.inf if pair_gate_sigma is None else pair_gate_sigma
+        params[_P_REINIT_AFTER] = np.inf if reinit_after_n_gated is None else self.reinit_after_n_gated
+        params[_P_GATE:] = gate
+        self._params = params
+        self._status = np.zeros(_N_STATUS)
+        self._toa_out = np.zeros(self.n_mics)  # [0, x[:m]] of the last step
+        self._work = np.zeros(_work_size(m))
+        self._ones = np.ones(self.n_pairs)  # the confidence when none is given: every finite pair, weight 1 / var
+        self._no_pairs = np.full(self.n_pairs, np.nan)  # the TDOAs of predict(): no usable pair
         self._eye_m = np.eye(m)
-        self._FT = self._F.T
-        self._rhs = np.empty((m, m + 1))  # right-hand sides [B, b] of the measurement update
-        self._rhs_B: np.ndarray | None = None  # the B held in self._rhs[:, :m] (only ever _B_all)
         self._kf = KalmanFilter(dim_x=2 * m, dim_z=self.n_pairs)
         self._kf.F = self._F
         self._kf.Q = self._Q
         self._kf.H = np.hstack([self._H0, np.zeros((self.n_pairs, m))])  # eq. (14)
         self._kf.R = self._tdoa_var * np.eye(self.n_pairs)
+        # The filter's buffers, written in place by every step; x_post and P_post are x and P.
+        self._kf.x = self._kf.x_post = np.zeros(2 * m)
+        self._kf.P = self._kf.P_post = np.eye(2 * m)
+        self._kf.x_prior = np.zeros(2 * m)
+        self._kf.P_prior = np.eye(2 * m)
+        # the arguments of _kalman_step after the measurement, in one tuple (fewer attribute loads)
+        self._buffers = (self._kf.x, self._kf.P, self._kf.x_prior, self._kf.P_prior, self._params, self._status,
+                         self._toa_out, self._work)
         self.reset()
 
     # -- public interface ------------------------------------------------------------------------
+
+    gated = _status_attribute(_S_GATED, bool, "The last measurement was rejected by the gate.")
+    reinitialised = _status_attribute(
+        _S_REINITIALISED, bool, "The last update (re-)initialised the state from the measurement.")
+    n_gated = _status_attribute(_S_N_GATED, int, "Gated frames since construction or reset().")
+    n_reinit = _status_attribute(_S_N_REINIT, int, "Re-initialisations since construction or reset().")
+    n_pairs_gated = _status_attribute(
+        _S_N_PAIRS_GATED, int, "Pairs left out by the per-pair gate since construction or reset().")
+    n_pairs_used = _status_attribute(_S_N_PAIRS_USED, int, "Pairs used by the last update.")
+    last_mahalanobis_sq = _status_attribute(
+        _S_MAHALANOBIS_SQ, float, "v^T S^-1 v of the last measurement (NaN when none was evaluated).")
+    _consecutive_gated = _status_attribute(_S_CONSECUTIVE_GATED, int, "Gated frames in a row.")
 
     @property
     def latency_s(self) -> float:
@@ -369,7 +726,7 @@ class KalmanToa(_PairModel):
     @property
     def initialised(self) -> bool:
         """Whether the state has been initialised from a measurement."""
-        return self._initialised
+        return bool(self._status[_S_INITIALISED])
 
     @property
     def state(self) -> np.ndarray:
@@ -383,22 +740,15 @@ class KalmanToa(_PairModel):
 
     def reset(self) -> None:
         """Forget the track and the counters."""
-        m = self._m
-        self._kf.x = np.zeros(2 * m)
-        self._kf.P = np.eye(2 * m)
-        self._kf.x_prior = self._kf.x.copy()
-        self._kf.P_prior = self._kf.P.copy()
-        self._kf.x_post = self._kf.x.copy()
-        self._kf.P_post = self._kf.P.copy()
-        self._initialised = False
-        self.gated = False
-        self.reinitialised = False
-        self.n_gated = 0
-        self.n_reinit = 0
-        self.n_pairs_gated = 0
-        self.n_pairs_used = 0
-        self.last_mahalanobis_sq = float("nan")
-        self._consecutive_gated = 0
+        kf = self._kf
+        kf.x[:] = 0.0
+        kf.P[:] = 0.0
+        np.fill_diagonal(kf.P, 1.0)
+        kf.x_prior[:] = kf.x
+        kf.P_prior[:] = kf.P
+        self._status[:] = 0.0
+        self._status[_S_MAHALANOBIS_SQ] = np.nan
+        self._toa_out[:] = 0.0
 
     def shift(self, delta_toa_s: np.ndarray, *, delta_rate_s_per_s: np.ndarray | None = None) -> None:
         """Move the tracked TOA by ``delta_toa_s`` (n_mics,) seconds, and optionally its rate by
@@ -408,9 +758,10 @@ class KalmanToa(_PairModel):
         a known amount) or corrects a device's clock drift (its TOA rate changes by a known
         amount): a known change must not look like clutter.
         """
-        self._kf.x, self._kf.x_prior, self._kf.x_post = (
-            np.asarray(getattr(self._kf, name), dtype=np.float64) + self._shift_step(delta_toa_s, delta_rate_s_per_s)
-            for name in ("x", "x_prior", "x_post"))
+        step = self._shift_step(delta_toa_s, delta_rate_s_per_s)
+        kf = self._kf
+        kf.x += step  # also x_post: the same buffer
+        kf.x_prior += step
 
     def _shift_step(self, delta_toa_s, delta_rate_s_per_s) -> np.ndarray:
         step = np.zeros(2 * self._m)
@@ -438,101 +789,48 @@ class KalmanToa(_PairModel):
         ndarray, shape (n_mics,), float64
             Filtered relative TOA of the current frame in seconds, ``toa_s[0] = 0``.
         """
-        tdoa, used = self._inputs(tdoa_s, confidence)
-        var = None
-        if self.confidence_weighted and confidence is not None:
-            conf = np.asarray(confidence, dtype=np.float64)
-            mask = used if used is not None else np.ones(self.n_pairs, bool)
-            var = np.where(mask, self._tdoa_var / np.where(mask, conf, 1.0), np.inf)
-        self._step(tdoa, used, var)
-        return self._toa(self._kf.x[: self._m])
+        try:
+            code = _kalman_step(tdoa_s, self._ones if confidence is None else confidence, *self._buffers)
+        except TypeError:  # not float64 arrays (lists, float32, 2-D): convert, then the same call
+            tdoa, conf = self._as_pairs(tdoa_s, confidence)
+            code = _kalman_step(tdoa, self._ones if conf is None else conf, *self._buffers)
+        if code:
+            self._finish_step(code, tdoa_s, confidence)
+        return self._toa_out.copy()
 
     def predict(self) -> np.ndarray:
         """Advance one frame without a measurement (e.g. no speech); returns the predicted TOA."""
-        self._step(None, None, None)
-        return self._toa(self._kf.x[: self._m])
+        _kalman_step(self._no_pairs, self._ones, *self._buffers)
+        return self._toa_out.copy()
 
     # -- internals -------------------------------------------------------------------------------
 
-    def _step(self, tdoa: np.ndarray | None, used: np.ndarray | None, var: np.ndarray | None) -> None:
-        """One frame: (initialise |) predict, gate, update. Sets the per-frame attributes."""
-        self.gated = False
-        self.reinitialised = False
-        self.last_mahalanobis_sq = float("nan")
-        n_used = 0 if tdoa is None else (self.n_pairs if used is None else int(used.sum()))
-        self.n_pairs_used = n_used
-        if not self._initialised:
-            if n_used and self._initialise(tdoa, used, var):
-                self.reinitialised = True
-            return
-        kf = self._kf
-        self._predict()
-        if n_used == 0:
-            kf.x_post, kf.P_post = kf.x, kf.P
-            return
-        if self.pair_gate_sigma is not None:
-            used, var, n_used = self._pair_gate(tdoa, used, var)
-        if n_used and self._measurement_update(tdoa, used, var, n_used):
-            self._consecutive_gated = 0
-            return
-        self.gated = True
-        self.n_gated += 1
-        self._consecutive_gated += 1
-        kf.x_post, kf.P_post = kf.x, kf.P
-        if self.reinit_after_n_gated is not None and self._consecutive_gated >= self.reinit_after_n_gated:
-            if self._initialise(tdoa, used, var):
-                self.reinitialised = True
-                self.n_reinit += 1
-
-    def _predict(self) -> None:
-        """eq. (13): ``x = F x``, ``P = F P F^T + Q``.
-
-        The arithmetic of ``filterpy.kalman.KalmanFilter.predict`` (same ``np.dot`` calls, so
-        bit-identical results) without its argument handling and its two copies of the prior:
-        2.9 instead of 3.9 us at 8 microphones.
-        """
-        kf = self._kf
-        F = self._F
-        kf.x = np.dot(F, kf.x)
-        kf.P = np.dot(np.dot(F, kf.P), self._FT) + self._Q
-        kf.x_prior, kf.P_prior = kf.x, kf.P
-
-    def _pair_gate(self, tdoa: np.ndarray, used: np.ndarray | None, var: np.ndarray | None):
-        """Per-pair clutter gate: drop pairs whose innovation exceeds ``pair_gate_sigma`` standard
-        deviations of its own predicted spread ``sqrt(H0_p P H0_p^T + R_pp)``.
-
-        A reverberant frame often has one or two pairs locked on a reflection while the rest are
-        right; eq. (17) alone would reject the whole frame. Returns ``(used, var, n_used)``.
-        """
-        m = self._m
-        x, P = self._kf.x, self._kf.P[:m, :m]
-        v = tdoa - self._H0 @ x[:m]
-        r = self._tdoa_var if var is None else var
-        spread = np.einsum("pi,ij,pj->p", self._H0, P, self._H0) + r
-        ok = np.abs(v) <= self.pair_gate_sigma * np.sqrt(spread)
-        new_used = ok if used is None else (used & ok)
-        self.n_pairs_gated += int(((used if used is not None else True) & ~ok).sum())
-        if var is not None:
-            var = np.where(new_used, var, np.inf)
-        return new_used, var, int(new_used.sum())
-
-    def _information(self, used: np.ndarray | None, var: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-        """Per-pair weights ``w = 1 / var`` (0 for unused pairs) and ``B = H0^T diag(w) H0``."""
-        if var is None and used is None:
-            return np.full(self.n_pairs, 1.0 / self._tdoa_var), self._B_all
-        if var is None:
-            w = used / self._tdoa_var
+    def _finish_step(self, code: int, tdoa_s, confidence) -> None:
+        """The rare outcomes of :func:`_kalman_step`: (re-)initialisation and errors."""
+        if code == _INITIALISE:
+            status = self._status
+            first = not status[_S_INITIALISED]
+            if self._initialise():
+                status[_S_REINITIALISED] = 1.0
+                if not first:
+                    status[_S_N_REINIT] += 1.0
+        elif code == _SINGULAR:
+            raise np.linalg.LinAlgError("singular T = I + B P in the measurement update")
         else:
-            w = 1.0 / var  # inf variance (unused) -> 0
-        return w, (self._H0T * w) @ self._H0
+            self._as_pairs(tdoa_s, confidence)  # raises the ValueError naming the bad shape
+            raise AssertionError(f"unexpected return code {code} of _kalman_step")
 
-    def _initialise(self, tdoa: np.ndarray, used: np.ndarray | None, var: np.ndarray | None) -> bool:
-        """State ``[WLS estimate (eq. 12), 0]``; ``False`` if the used pairs leave a TOA unobservable."""
-        w, B = self._information(used, var)
+    def _initialise(self) -> bool:
+        """State ``[WLS estimate (eq. 12), 0]`` from the pairs of the last frame (``y`` and ``w``
+        left in the work buffer by :func:`_kalman_step`); ``False`` if they leave a TOA unobservable.
+        """
+        n, m = self.n_pairs, self._m
+        tdoa, w = self._work[:n], self._work[n:2 * n]
+        B = (self._H0T * w) @ self._H0  # eq. (12) information H0^T W H0
         if self.initial_toa_std_s is not None:
             # weak prior toa ~ N(0, initial_toa_std_s^2): devices without a usable pair yet (not
             # started, silent) start at 0 with a wide spread instead of blocking the start
-            if int(np.count_nonzero(w)) < min(3, self.n_pairs):
+            if int(np.count_nonzero(w)) < min(3, n):
                 return False
             B = B + self._eye_m / self.initial_toa_std_s**2
         try:
@@ -541,84 +839,25 @@ class KalmanToa(_PairModel):
                 return False
         except (np.linalg.LinAlgError, ValueError):
             return False
-        m = self._m
-        x = np.zeros(2 * m)
-        x[:m] = cov_pos @ (self._H0T @ (w * tdoa))
+        toa0 = cov_pos @ (self._H0T @ (w * tdoa))
         if self.init_max_residual_s is not None:
             # start only from a self-consistent frame: TDOAs of all pairs must agree with one TOA
             # vector (a pair locked on a reflection breaks the triangle relations tdoa_ij = tdoa_0j - tdoa_0i)
             ok = w > 0
-            resid = (tdoa - self._H0 @ x[:m])[ok]
+            resid = (tdoa - self._H0 @ toa0)[ok]
             if resid.size and float(np.sqrt(np.mean(resid**2))) > self.init_max_residual_s:
                 return False
-        P = np.zeros((2 * m, 2 * m))
-        P[:m, :m] = cov_pos
-        P[m:, m:] = self.initial_rate_std_s_per_s**2 * self._eye_m
         kf = self._kf
-        kf.x, kf.P = x, P
-        kf.x_prior, kf.P_prior = x.copy(), P.copy()
-        kf.x_post, kf.P_post = x.copy(), P.copy()
-        self._initialised = True
-        self._consecutive_gated = 0
-        return True
-
-    def _measurement_update(
-        self, tdoa: np.ndarray, used: np.ndarray | None, var: np.ndarray | None, n_used: int
-    ) -> bool:
-        """Gate (eq. 17) then update (eq. 14) in information form; ``False`` if gated.
-
-        With ``H = [H0, 0]``, ``W = R^-1`` (zero for unused pairs), ``B = H0^T W H0``,
-        ``b = H0^T W v`` and ``P_pp`` the TOA block of ``P``, Woodbury's identity on
-        ``S = H0 P_pp H0^T + R`` gives, with ``T = I + B P_pp``::
-
-            H0^T S^-1 v  = T^-1 b                    (= g)
-            H0^T S^-1 H0 = T^-1 B                    (= G)
-            v^T S^-1 v   = v^T W v - b^T P_pp g
-            x <- x + P[:, :m] g,   P <- P - P[:, :m] G P[:m, :]
-
-        which is the Kalman update ``K = P H^T S^-1``, ``x += K v``, ``P -= K S K^T``.
-        """
-        kf = self._kf
-        m = self._m
-        x, P = kf.x, kf.P
-        v = tdoa - self._H0 @ x[:m]
-        if used is None and var is None:  # every pair at the nominal variance (the usual case)
-            B = self._B_all
-            wv = v * (1.0 / self._tdoa_var)  # the same products as w * v with w = 1 / var
-        else:
-            w, B = self._information(used, var)
-            if used is not None:
-                v[~used] = 0.0
-            wv = w * v
-        # Right-hand sides [B, b] (m, m + 1). dgesv works on its own copy of them, so B stays in
-        # place between frames and only b is written while every pair is used.
-        rhs = self._rhs
-        if B is not self._rhs_B:
-            rhs[:, :m] = B
-            self._rhs_B = B if B is self._B_all else None
-        b = rhs[:, m]
-        np.matmul(self._H0T, wv, out=b)
-        P_c = P[:, :m]
-        T = B @ P[:m, :m]
-        T += self._eye_m
-        # Solve T [G, g] = [B, b] with LAPACK's dgesv directly: np.linalg.solve costs ~8 us of
-        # Python and checks on top of the same factorisation, this ~2 us.
-        _, _, sol, info = scipy.linalg.lapack.dgesv(T, rhs)
-        if info != 0:
-            raise np.linalg.LinAlgError(f"singular T = I + B P in the measurement update (dgesv info {info})")
-        # K_all = P_c [G, g]: its last column is the state step P_c g, whose first m entries are
-        # P_pp g for the gate; one product instead of three.
-        K_all = P_c @ sol
-        step = K_all[:, m]
-        d2 = float(v @ wv - b @ step[:m])
-        self.last_mahalanobis_sq = d2
-        if d2 > self._gate[n_used]:
-            return False
-        x_new = x + step
-        P_new = P - K_all[:, :m] @ P_c.T
-        P_new = 0.5 * (P_new + P_new.T)
-        kf.x, kf.P = x_new, P_new
-        kf.x_post, kf.P_post = x_new, P_new
+        kf.x[:m] = toa0
+        kf.x[m:] = 0.0
+        kf.P[:] = 0.0
+        kf.P[:m, :m] = 0.5 * (cov_pos + cov_pos.T)  # exactly symmetric: the compiled step relies on it
+        kf.P[m:, m:] = self.initial_rate_std_s_per_s**2 * self._eye_m
+        kf.x_prior[:] = kf.x
+        kf.P_prior[:] = kf.P
+        self._status[_S_INITIALISED] = 1.0
+        self._status[_S_CONSECUTIVE_GATED] = 0.0
+        self._toa_out[1:] = toa0
         return True
 
 
@@ -688,7 +927,7 @@ class FixedLagKalmanToa(KalmanToa):
             Smoothed relative TOA of frame ``t - lag_frames`` in seconds (filtered TOA of frame
             ``t`` while fewer than ``lag_frames + 1`` frames have been seen), ``toa_s[0] = 0``.
         """
-        P_prev = self._kf.P.copy() if self._initialised else None
+        P_prev = self._kf.P.copy() if self.initialised else None
         self.filtered_toa_s = super().update(tdoa_s, confidence)
         return self._smooth(P_prev)
 
@@ -701,12 +940,12 @@ class FixedLagKalmanToa(KalmanToa):
 
     def predict(self) -> np.ndarray:
         """Advance one frame without a measurement; returns the smoothed TOA of frame ``t - lag``."""
-        P_prev = self._kf.P.copy() if self._initialised else None
+        P_prev = self._kf.P.copy() if self.initialised else None
         self.filtered_toa_s = super().predict()
         return self._smooth(P_prev)
 
     def _smooth(self, P_prev: np.ndarray | None) -> np.ndarray:
-        if not self._initialised:
+        if not self.initialised:
             return self.filtered_toa_s.copy()
         kf = self._kf
         if P_prev is None or self.reinitialised:

@@ -936,7 +936,14 @@ class StreamCalibrator:
     max_events : int
         Solve over at most the last this many events.
     finish_timeout_s : float
-        At the end of the stream, wait at most this long for a pending solve.
+        At the end of the stream, wait at most this long for a pending solve; also the bound of a wait
+        for ``replay_latency_s``.
+    replay_latency_s : float or None
+        None (live and paced streams): a finished solve is collected at the next frame boundary and the
+        stream never waits. A number (a replay as fast as possible): a solve submitted at stream time ``t``
+        is adopted at the first frame boundary at or after ``t + replay_latency_s`` (stream seconds), waiting
+        for the worker there if it has not finished, so that the replay gives the same result on any
+        machine, however fast the stream runs past the solver (counted in ``blocks_waited_on_calibration``).
     """
 
     def __init__(self, n_devices: int, *, template: np.ndarray, sample_rate_hz: float, odometry: OdometryLog,
@@ -947,7 +954,7 @@ class StreamCalibrator:
                  on_geometry: Callable[[Geometry], None] | None = None,
                  executor: Literal["thread", "process"] = "thread", max_events: int = 200,
                  finish_timeout_s: float = 60.0, final_solve: bool = True,
-                 device_names: Sequence[str] = ()) -> None:
+                 device_names: Sequence[str] = (), replay_latency_s: float | None = None) -> None:
         if n_devices < 3:
             raise ConfigError(f"calibration needs >= 3 devices; {n_devices=}")
         if int(recalibrate_every) < 3:
@@ -967,6 +974,10 @@ class StreamCalibrator:
         self.speed_of_sound_m_s = float(speed_of_sound_m_s)
         self.max_events = int(max_events)
         self.finish_timeout_s = float(finish_timeout_s)
+        if replay_latency_s is not None and not (math.isfinite(replay_latency_s) and replay_latency_s >= 0):
+            raise ConfigError(f"{replay_latency_s=} must be None or a finite number of seconds >= 0")
+        self.replay_latency_s = replay_latency_s
+        self.blocks_waited = 0                         # frame boundaries that waited for a solve (replay only)
         self.final_solve = final_solve
         self.device_names = tuple(device_names) or tuple(f"dev{i}" for i in range(n_devices))
         self.solver = solver or calibrate
@@ -1050,8 +1061,15 @@ class StreamCalibrator:
         """
         t0 = time.perf_counter()
         adopted = None
-        if self._future is not None and self._future.done():
-            adopted = self._collect(time_s)
+        if self._future is not None:
+            if self.replay_latency_s is None:
+                if self._future.done():
+                    adopted = self._collect(time_s)
+            elif time_s >= self._record.snapshot_time_s + self.replay_latency_s:
+                # replay: adopt at a fixed stream time after the submit, whatever the machine's speed
+                if not self._future.done():
+                    self.blocks_waited += 1
+                adopted = self._wait(time_s)
         if self._future is None and time_s >= self._next_attempt_s:
             self._next_attempt_s = time_s + ATTEMPT_EVERY_S
             delta = delta_s() if callable(delta_s) else delta_s
@@ -1165,7 +1183,8 @@ class StreamCalibrator:
             "solve_time_s_max": float(np.max(times)) if times else None,
             "step_ms_median": float(np.median(step)),
             "step_ms_max": float(np.max(step)),
-            "blocks_waited_on_calibration": 0,   # step() never waits; only finish() does, after the last block
+            "replay_latency_s": self.replay_latency_s,
+            "blocks_waited_on_calibration": self.blocks_waited,   # 0 unless a replay waited (replay_latency_s)
             "finish_wait_s": self.finish_wait_s,
             "geometry": self.geometry.to_dict() if self.geometry is not None else None,
             "messages": list(self.messages),

@@ -56,6 +56,10 @@ def _add_engine_options(p: argparse.ArgumentParser) -> None:
                    help="correct a device's drift once its CRLB std is at most this (default 5 ppm)")
     c.add_argument("--calibration-max-events", type=int, help="solve over at most the last this many chirps")
     c.add_argument("--calibration-executor", choices=["thread", "process"], help="where solves run (default thread)")
+    c.add_argument("--calibration-replay-latency-s", type=float,
+                   help="unpaced replay: adopt each solve this many stream seconds after it started, waiting for "
+                        "it if needed, so the replay is reproducible on any machine (default 1.0; paced and live "
+                        "streams never wait)")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -83,6 +83,9 @@ class EngineConfig:
     calibration_max_drift_std_ppm: float = 5.0   # a device's drift is corrected once its CRLB std is this small
     calibration_max_events: int = 200
     calibration_executor: CalibrationExecutor = "thread"
+    # a replay as fast as possible adopts each solve this long (stream time) after submitting it, waiting for
+    # the worker if needed: the same result on any machine. Paced (speed) and live streams never wait.
+    calibration_replay_latency_s: float = 1.0
 
     def resolved(self, reference_rate_hz: float) -> "EngineConfig":
         """Fill in the automatic values for a given reference device rate and validate everything."""
@@ -140,6 +143,9 @@ class EngineConfig:
                      "calibration_max_drift_std_ppm"):
             if not getattr(self, name) > 0:
                 raise ConfigError(f"{name}={getattr(self, name)} must be > 0")
+        if not (math.isfinite(self.calibration_replay_latency_s) and self.calibration_replay_latency_s >= 0):
+            raise ConfigError(f"calibration_replay_latency_s={self.calibration_replay_latency_s} must be a "
+                              "finite number of seconds >= 0")
         if self.chirp_interval_s is not None and not self.chirp_interval_s > 0:
             raise ConfigError(f"chirp_interval_s={self.chirp_interval_s} must be > 0 s")
         if not 0 <= self.chirp_f0_hz < self.chirp_f1_hz:

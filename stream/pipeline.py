@@ -135,8 +135,6 @@ class Pipeline:
         self.state = PipelineState()
         self._fine_toa_s = np.zeros(self.n_devices)
         self._last_offsets = np.zeros(self.n_devices, dtype=np.int64)
-        pair_index = estimators.pairs(self.n_devices) if self.n_devices >= 2 else np.zeros((0, 2), np.intp)
-        self._pair_i, self._pair_j = pair_index[:, 0], pair_index[:, 1]
         self._recent: collections.deque = collections.deque(maxlen=RECENTRE_FRAMES)
 
     @property
@@ -195,8 +193,7 @@ class Pipeline:
         self._follow_offsets(block)
         spectra = self.stft.process(block.samples)
         if self.gcc is not None:
-            tdoa_s, confidence = self.gcc.process(spectra)
-            confidence = np.where(self._pair_valid(block.valid), confidence, 0.0)
+            tdoa_s, confidence = self.gcc.process(spectra, valid=block.valid)   # invalid device: confidence 0
             tdoa = TdoaFrame(block.seq, time_s, tdoa_s, confidence)
             fine = self.estimator.update(tdoa.tdoa_s, tdoa.confidence)
             gated = bool(getattr(self.estimator, "gated", False))
@@ -308,9 +305,6 @@ class Pipeline:
             self.estimator.shift(np.zeros(self.n_devices), delta_rate_s_per_s=delta_rate)
 
     # helpers ---------------------------------------------------------------------------------
-    def _pair_valid(self, valid: np.ndarray) -> np.ndarray:
-        return valid[self._pair_i] & valid[self._pair_j]
-
     def _record(self, block: Block, tdoa: TdoaFrame, toa: ToaEstimate, enhanced: np.ndarray) -> None:
         s, c = self.state, self.counters
         c.n_blocks += 1

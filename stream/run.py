@@ -92,7 +92,9 @@ def make_calibrator(cfg: EngineConfig, n_devices: int, out: Path, *, device_name
         recalibrate_every=cfg.recalibrate_every, method=cfg.calibration_method, apply=cfg.calibration_apply,
         sigma_tdoa_s=cfg.calibration_sigma_tdoa_s, sigma_odo_m=cfg.calibration_sigma_odo_m,
         threshold=cfg.chirp_threshold, solver=solver, on_geometry=publish, executor=cfg.calibration_executor,
-        max_events=cfg.calibration_max_events, device_names=device_names)
+        max_events=cfg.calibration_max_events, device_names=device_names,
+        # unpaced replay: adopt solves at fixed stream times (reproducible); paced (fake live): never wait
+        replay_latency_s=cfg.calibration_replay_latency_s if cfg.speed is None else None)
 
 
 def run_replay(inputs: Sequence[str | Path], out_dir: str | Path, *, config: EngineConfig | None = None,

@@ -5,6 +5,7 @@ import copy
 
 import numpy as np
 import pytest
+import scipy.stats
 from filterpy.kalman import KalmanFilter
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -37,6 +38,18 @@ def kalman(n_mics: int, **kwargs) -> KalmanToa:
     kwargs.setdefault("tdoa_std_s", TDOA_STD_S)
     kwargs.setdefault("accel_std_s_per_s2", 1e-3)
     return KalmanToa(n_mics, **kwargs)
+
+
+# KalmanToa predicts with the block structure of F (eq. 16) instead of np.dot(np.dot(F, P), F.T),
+# which rounds differently: states agree with filterpy's predict to rtol 1e-12 (atol 1e-18 s,
+# i.e. 1e-15 of the 1 ms TOAs used here), covariances to rtol 1e-12 with an absolute tolerance of
+# 1e-12 of the largest element (s^2).
+def assert_state_close(actual, desired) -> None:
+    np.testing.assert_allclose(actual, desired, rtol=1e-12, atol=1e-18)
+
+
+def assert_covariance_close(actual, desired) -> None:
+    np.testing.assert_allclose(actual, desired, rtol=1e-12, atol=1e-12 * np.abs(desired).max())
 
 
 # -- instantaneous estimators ----------------------------------------------------------------------
@@ -222,7 +235,8 @@ def test_long_run_equals_filterpy_with_changing_masks(n_mics):
             kf.update(y[used])
             assert est.last_mahalanobis_sq == pytest.approx(kf.mahalanobis**2, rel=1e-7)
         else:
-            np.testing.assert_array_equal(est.state, kf.x)  # prediction only: bit-identical
+            assert_state_close(est.state, kf.x)  # prediction only
+            assert_covariance_close(est.state_covariance, kf.P)
         np.testing.assert_allclose(est.state, kf.x, rtol=1e-9, atol=1e-15)
         np.testing.assert_allclose(est.state_covariance, kf.P, rtol=1e-7, atol=1e-20)
         np.testing.assert_array_equal(out, np.r_[0.0, est.state[: n_mics - 1]])
@@ -241,9 +255,12 @@ def test_gated_outlier_leaves_prediction():
     outlier[0] += 1e-2  # 500 sigma
     out = est.update(outlier)
     assert est.gated and est.n_gated == 1
-    np.testing.assert_array_equal(est.state, predicted._kf.x)
-    np.testing.assert_array_equal(est.state_covariance, predicted._kf.P)
-    np.testing.assert_array_equal(out[1:], predicted._kf.x[: n_mics - 1])
+    # the prediction, exactly the filter's own prior, and filterpy's to float tolerance
+    np.testing.assert_array_equal(est.state, est._kf.x_prior)
+    np.testing.assert_array_equal(est.state_covariance, est._kf.P_prior)
+    assert_state_close(est.state, predicted._kf.x)
+    assert_covariance_close(est.state_covariance, predicted._kf.P)
+    np.testing.assert_array_equal(out[1:], est.state[: n_mics - 1])
     est.update(tdoa[51])
     assert not est.gated
 
@@ -266,8 +283,10 @@ def test_gate_leaves_prior_untouched(seed, pair, jump_s, sign):
     y[pair] += sign * jump_s
     est.update(y)
     assert est.gated
-    np.testing.assert_array_equal(est.state, prior.x)
-    np.testing.assert_array_equal(est.state_covariance, prior.P)
+    np.testing.assert_array_equal(est.state, est._kf.x_prior)
+    np.testing.assert_array_equal(est.state_covariance, est._kf.P_prior)
+    assert_state_close(est.state, prior.x)
+    assert_covariance_close(est.state_covariance, prior.P)
 
 
 def test_no_usable_pair_only_predicts():
@@ -280,7 +299,9 @@ def test_no_usable_pair_only_predicts():
     predicted.predict()
     est.update(tdoa[19], np.zeros(3))
     assert not est.gated and est.n_pairs_used == 0
-    np.testing.assert_array_equal(est.state, predicted.x)
+    np.testing.assert_array_equal(est.state, est._kf.x_prior)
+    assert_state_close(est.state, predicted.x)
+    assert_covariance_close(est.state_covariance, predicted.P)
 
 
 def test_reset_restores_initial_state():
@@ -327,6 +348,218 @@ def test_confidence_weighting_downweights_pairs():
         y[2] += 5 * TDOA_STD_S  # biased pair, low confidence
         out_w, out_u = est_w.update(y, conf), est_u.update(y, conf)
     assert np.abs(out_w - toa).max() < np.abs(out_u - toa).max()
+
+
+# -- the compiled step against plain numpy ---------------------------------------------------------
+
+
+def information_form_reference(x, P, F, Q, y, confidence, *, tdoa_var, min_confidence, weighted, gate_probability):
+    """Plain numpy restatement of one KalmanToa step from the posterior ``(x, P)``: predict
+    (eq. 13), used pairs and weights, gate (eq. 17), information-form update (eq. 14).
+
+    Returns ``(x, P, d2, gated)``; checks itself against the textbook ``K = P H^T S^-1`` update.
+    """
+    m = len(x) // 2
+    H0 = pair_matrix(m + 1)[:, 1:]
+    x_p = F @ x
+    P_p = F @ P @ F.T + Q
+    conf = np.ones(len(y)) if confidence is None else confidence
+    used = np.isfinite(y) & (conf > min_confidence)
+    w = np.where(used, (conf if weighted else 1.0) / tdoa_var, 0.0)
+    v = np.where(used, y - H0 @ x_p[:m], 0.0)
+    B = H0.T @ (w[:, None] * H0)
+    b = H0.T @ (w * v)
+    sol = np.linalg.solve(np.eye(m) + B @ P_p[:m, :m], np.column_stack([B, b]))
+    G, g = sol[:, :m], sol[:, m]
+    P_c = P_p[:, :m]
+    d2 = v @ (w * v) - b @ (P_c[:m] @ g)
+    x_new = x_p + P_c @ g
+    P_new = P_p - P_c @ G @ P_c.T
+    # the same posterior from S = H P H^T + R on the used pairs
+    Hu = H0[used]
+    S = Hu @ P_p[:m, :m] @ Hu.T + np.diag(1.0 / w[used])
+    K = P_c @ Hu.T @ np.linalg.inv(S)
+    np.testing.assert_allclose(x_new, x_p + K @ v[used], rtol=1e-9, atol=1e-18)
+    np.testing.assert_allclose(P_new, P_p - K @ S @ K.T, rtol=1e-6, atol=1e-9 * np.abs(P_p).max())
+    assert d2 == pytest.approx(v[used] @ np.linalg.solve(S, v[used]), rel=1e-9)
+    if gate_probability is not None and d2 > scipy.stats.chi2.ppf(gate_probability, int(used.sum())):
+        return x_p, P_p, d2, True
+    return x_new, 0.5 * (P_new + P_new.T), d2, False
+
+
+def random_posterior(rng: np.random.Generator, m: int) -> tuple[np.ndarray, np.ndarray]:
+    """A state around 1 ms and an exactly symmetric positive-definite covariance (the filter
+    keeps its covariance exactly symmetric)."""
+    L = rng.normal(0.0, 2e-5, (2 * m, 2 * m))
+    P = L @ L.T + 1e-12 * np.eye(2 * m)
+    return rng.normal(0.0, 1e-3, 2 * m), 0.5 * (P + P.T)
+
+
+@pytest.mark.parametrize("n_mics", [2, 3, 8, 16])
+@pytest.mark.parametrize("mode", ["all pairs", "masked", "confidence weighted"])
+def test_compiled_step_equals_numpy_information_form(n_mics, mode):
+    """On random covariances: used pairs (low, zero and NaN confidence, NaN TDOA), weights, the
+    prediction, the gate and the update match the numpy restatement (float reordering: the
+    compiled step solves by its own elimination and predicts with the blocks of F)."""
+    rng = np.random.default_rng(n_mics + 100 * len(mode))
+    m, n_pairs = n_mics - 1, n_mics * (n_mics - 1) // 2
+    weighted = mode == "confidence weighted"
+    kw = dict(tdoa_var=TDOA_STD_S**2, min_confidence=0.1, weighted=weighted, gate_probability=0.999)
+    est = kalman(n_mics, min_confidence=0.1, confidence_weighted=weighted, reinit_after_n_gated=None)
+    est.update(np.zeros(n_pairs))  # initialised; the state is replaced below
+    n_gated = 0
+    for trial in range(12):
+        x0, P0 = random_posterior(rng, m)
+        x_p = est._kf.F @ x0  # measurements around the prediction: most frames pass the gate
+        y = pair_matrix(n_mics) @ np.r_[0.0, x_p[:m]] + rng.normal(0.0, TDOA_STD_S, n_pairs)
+        if trial % 4 == 3:
+            y[rng.integers(n_pairs)] += 5e-3  # clutter: gated
+        conf = None
+        if mode != "all pairs":
+            conf = rng.uniform(0.2, 1.0, n_pairs)
+            drop = rng.random(n_pairs) < 0.3
+            conf[drop] = rng.choice([0.0, 0.05, np.nan], int(drop.sum()))
+            y[1:][rng.random(n_pairs - 1) < 0.1] = np.nan
+            conf[0] = 0.9  # at least one usable pair
+        est._kf.x[:] = x0
+        est._kf.P[:] = P0
+        out = est.update(y, conf)
+        x_ref, P_ref, d2_ref, gated_ref = information_form_reference(x0, P0, est._kf.F, est._kf.Q, y, conf, **kw)
+        n_gated += gated_ref
+        assert est.gated == gated_ref and est.n_gated == n_gated
+        assert est.last_mahalanobis_sq == pytest.approx(d2_ref, rel=1e-11)
+        used = np.isfinite(y) & ((conf if conf is not None else 1.0) > 0.1)
+        assert est.n_pairs_used == used.sum()
+        # tolerances: 1e-17 s on ~1 ms TOAs (seen: 4e-19 s); covariance to 1e-12 of its largest
+        # element (seen: 1e-15), in s^2
+        np.testing.assert_allclose(est.state, x_ref, rtol=1e-12, atol=1e-17)
+        np.testing.assert_allclose(est.state_covariance, P_ref, rtol=1e-12, atol=1e-12 * np.abs(P_ref).max())
+        np.testing.assert_array_equal(est.state_covariance, est.state_covariance.T)
+        np.testing.assert_array_equal(out, np.r_[0.0, est.state[:m]])
+        # the prior of this step stays readable (the smoother uses it)
+        assert_state_close(est._kf.x_prior, est._kf.F @ x0)
+        assert_covariance_close(est._kf.P_prior, est._kf.F @ P0 @ est._kf.F.T + est._kf.Q)
+    assert 0 < n_gated < 12
+
+
+@pytest.mark.parametrize("n_mics", [2, 5, 16])
+def test_predict_equals_dense_prediction(n_mics):
+    rng = np.random.default_rng(n_mics)
+    m = n_mics - 1
+    est = kalman(n_mics)
+    assert not est.initialised
+    np.testing.assert_array_equal(est.predict(), np.zeros(n_mics))  # nothing to predict yet
+    est.update(np.zeros(n_mics * m // 2))
+    x0, P0 = random_posterior(rng, m)
+    est._kf.x[:] = x0
+    est._kf.P[:] = P0
+    n_gated = est.n_gated
+    out = est.predict()
+    F, Q = est._kf.F, est._kf.Q
+    assert_state_close(est.state, F @ x0)
+    assert_covariance_close(est.state_covariance, F @ P0 @ F.T + Q)
+    np.testing.assert_array_equal(est.state_covariance, est.state_covariance.T)
+    np.testing.assert_array_equal(est._kf.P_prior, est._kf.P)
+    np.testing.assert_array_equal(out, np.r_[0.0, est.state[:m]])
+    assert not est.gated and est.n_gated == n_gated and est.n_pairs_used == 0
+    assert np.isnan(est.last_mahalanobis_sq)
+
+
+def test_update_converts_other_input_types():
+    """Lists, float32, read-only and strided arrays give the float64 result; bad shapes raise."""
+    n_mics = 4
+    _, tdoa, _ = drifting_track(n_mics, 8, seed=11)
+    conf = np.full(tdoa.shape[1], 0.8)
+    conf[2] = 0.0
+    est = kalman(n_mics)
+    ref = [est.update(y, conf) for y in tdoa]
+    for convert, exact in (
+        (list, True),
+        (lambda a: a.astype(np.float32), False),
+        (lambda a: np.frombuffer(a.tobytes()), True),  # read-only
+        (lambda a: np.repeat(a, 2)[::2], True),  # strided view
+    ):
+        est.reset()
+        for y, r in zip(tdoa, ref):
+            out = est.update(convert(y), convert(conf))
+            if exact:
+                np.testing.assert_array_equal(out, r)
+            else:
+                np.testing.assert_allclose(out, r, atol=1e-8)  # float32 rounding of ~1 ms TDOAs
+    with pytest.raises(ValueError, match="tdoa_s.shape"):
+        est.update(tdoa[:2])
+    with pytest.raises(ValueError, match="tdoa_s.shape"):
+        est.update(np.zeros(7))
+    with pytest.raises(ValueError, match="confidence.shape"):
+        est.update(tdoa[0], [1.0, 1.0])
+
+
+def test_pair_gate_drops_outlying_pairs():
+    n_mics, sigma = 5, 4.0
+    _, tdoa, _ = drifting_track(n_mics, 31, seed=12)
+    est = kalman(n_mics, pair_gate_sigma=sigma, gate_probability=0.999)
+    for y in tdoa[:30]:
+        est.update(y)
+    x0, P0 = est.state, est.state_covariance
+    y = tdoa[30].copy()
+    y[[1, 7]] += 50 * TDOA_STD_S
+    # per-pair gate restated: |v_p| <= sigma sqrt(H0_p P_pp H0_p^T + R_pp)
+    m = n_mics - 1
+    F, Q, H0 = est._kf.F, est._kf.Q, pair_matrix(n_mics)[:, 1:]
+    x_p, P_p = F @ x0, F @ P0 @ F.T + Q
+    spread = np.einsum("pi,ij,pj->p", H0, P_p[:m, :m], H0) + TDOA_STD_S**2
+    ok = np.abs(y - H0 @ x_p[:m]) <= sigma * np.sqrt(spread)
+    assert not ok[1] and not ok[7]
+    n_pairs_gated = est.n_pairs_gated
+    est.update(y)
+    assert est.n_pairs_gated == n_pairs_gated + int((~ok).sum())
+    assert est.n_pairs_used == len(y) and not est.gated
+    x_ref, P_ref, _, _ = information_form_reference(
+        x0, P0, F, Q, y, ok.astype(float), tdoa_var=TDOA_STD_S**2, min_confidence=0.0, weighted=False,
+        gate_probability=0.999)
+    np.testing.assert_allclose(est.state, x_ref, rtol=1e-12, atol=1e-17)
+    np.testing.assert_allclose(est.state_covariance, P_ref, rtol=1e-12, atol=1e-12 * np.abs(P_ref).max())
+
+
+def test_deepcopy_continues_like_the_original():
+    _, tdoa, _ = drifting_track(4, 30, seed=13)
+    est = kalman(4)
+    for y in tdoa[:10]:
+        est.update(y)
+    twin = copy.deepcopy(est)
+    assert twin._kf.x is twin._kf.x_post and twin._kf.x is not est._kf.x
+    for y in tdoa[10:]:
+        np.testing.assert_array_equal(twin.update(y), est.update(y))
+    np.testing.assert_array_equal(twin.state_covariance, est.state_covariance)
+    assert twin.n_gated == est.n_gated
+
+
+def test_init_waits_for_a_self_consistent_frame():
+    n_mics = 4
+    H = pair_matrix(n_mics)
+    toa = random_toa(np.random.default_rng(14), n_mics)
+    inconsistent = H @ toa
+    inconsistent[5] += 1e-3  # pair (2, 3) on a reflection: breaks tdoa_23 = tdoa_03 - tdoa_02
+    est = kalman(n_mics, init_max_residual_s=1e-5)
+    np.testing.assert_array_equal(est.update(inconsistent), np.zeros(n_mics))
+    assert not est.initialised and not est.reinitialised
+    np.testing.assert_allclose(est.update(H @ toa), toa, atol=1e-15)
+    assert est.initialised and est.reinitialised and est.n_reinit == 0
+
+
+def test_shift_moves_state_and_prior():
+    n_mics = 3
+    _, tdoa, _ = drifting_track(n_mics, 10, seed=15)
+    est = kalman(n_mics)
+    for y in tdoa:
+        est.update(y)
+    x, x_prior, P = est.state, est._kf.x_prior.copy(), est.state_covariance
+    est.shift(np.array([1e-3, 2e-3, -1e-3]), delta_rate_s_per_s=np.array([0.0, 1e-4, 0.0]))
+    step = np.array([1e-3, -2e-3, 1e-4, 0.0])  # toa and rate against device 0
+    np.testing.assert_allclose(est.state, x + step, rtol=0, atol=1e-18)
+    np.testing.assert_allclose(est._kf.x_prior, x_prior + step, rtol=0, atol=1e-18)
+    np.testing.assert_array_equal(est._kf.x_post, est.state)
+    np.testing.assert_array_equal(est.state_covariance, P)
 
 
 # -- fixed-lag smoother ----------------------------------------------------------------------------

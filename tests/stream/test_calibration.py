@@ -218,7 +218,13 @@ def test_stream_recalibrates_and_recovers_the_geometry(session, drift_run):
     for d, cond in enumerate(outcome.pipeline.conditioners[1:], start=1):
         if cond.n_retunes:
             assert abs((cond.rate_ratio - 1) * 1e6 - truth["drifts_ppm"][d]) < 10.0
-    assert cal["blocks_waited_on_calibration"] == 0
+    # an unpaced replay adopts every solve one replay latency (stream time) after its snapshot, waiting for the
+    # worker if the stream ran ahead: the same frame boundary on any machine (within one hop)
+    latency, hop_s = cal["replay_latency_s"], 0.05
+    assert latency == 1.0
+    for solve in cal["solves"]:
+        if solve["status"] == "adopted" and solve["adopted_at_time_s"] < report["stream"]["audio_s"]:
+            assert latency <= solve["adopted_at_time_s"] - solve["snapshot_time_s"] < latency + hop_s
 
 
 def test_drift_correction_does_not_cost_enhancement(session, drift_run, tmp_path):
@@ -374,7 +380,7 @@ def test_every_calibration_option_is_a_replay_flag():
             "--chirp-threshold", "12", "--calibration-method", "baseline", "--calibration-apply", "offsets",
             "--calibration-sigma-tdoa-s", "1e-4", "--calibration-sigma-odo-m", "0.02",
             "--calibration-max-drift-std-ppm", "3", "--calibration-max-events", "50",
-            "--calibration-executor", "process"]
+            "--calibration-executor", "process", "--calibration-replay-latency-s", "0.5"]
     values = _overrides(build_parser().parse_args(argv))
     assert sorted(values) == sorted(names)
     cfg = EngineConfig(**values).resolved(16000)
