@@ -1,7 +1,8 @@
 """Delay estimation: GCC-PHAT over all microphone pairs and relative-TOA estimators.
 
-Imports only numpy, scipy and filterpy. Conventions (units, signs, pair order) are stated once in
-:mod:`estimators.conventions`.
+Imports numpy, scipy, filterpy and numba: the per-hop work of GCC-PHAT and the Kalman update runs in
+compiled kernels (GCC-PHAT's inverse FFTs through rocket-fft's numba overloads of ``np.fft``); nothing from
+:mod:`stream`. Conventions (units, signs, pair order) are stated once in :mod:`estimators.conventions`.
 """
 from .conventions import SPEED_OF_SOUND_M_S, pair_matrix, pairs, ppm_to_ratio, s_to_samples, samples_to_s
 from .gcc import GccPhat, gcc_phat, gcc_phat_spectra

@@ -545,15 +545,17 @@ class GccPhat:
         return tdoa_s, confidence
 
 
+def _kernel_array(a, dtype: np.dtype) -> np.ndarray:
+    """``a`` as a writeable C-contiguous array of ``dtype``, the one layout the kernels are compiled for (numba
+    types read-only or strided arrays differently); no copy when it already is one."""
+    if type(a) is not np.ndarray or a.dtype is not dtype or not a.flags.c_contiguous or not a.flags.writeable:
+        a = np.array(a, dtype=dtype, order="C")
+    return a
+
+
 def _channel_flags(valid: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
     """``valid`` as a writeable C-contiguous bool array of ``shape`` (no copy when it already is one)."""
-    if (
-        type(valid) is not np.ndarray
-        or valid.dtype is not _BOOL
-        or not valid.flags.c_contiguous
-        or not valid.flags.writeable
-    ):
-        valid = np.array(valid, dtype=np.bool_, order="C")
+    valid = _kernel_array(valid, _BOOL)
     if valid.shape != shape:
         raise ValueError(f"valid.shape={valid.shape} must be {shape}")
     return valid
@@ -658,13 +660,7 @@ def gcc_phat(
     confidence : ndarray, shape (n_pairs,), float64
         PHAT peak height in ``[0, 1]``.
     """
-    if (
-        type(frame) is not np.ndarray
-        or frame.dtype is not _F32
-        or not frame.flags.c_contiguous
-        or not frame.flags.writeable
-    ):
-        frame = np.array(frame, dtype=np.float32, order="C")
+    frame = _kernel_array(frame, _F32)
     if frame.ndim != 2 or frame.shape[0] < 4 or frame.shape[1] < 2:
         raise ValueError(f"frame.shape={frame.shape} must be (n_samples >= 4, n_channels >= 2)")
     n_samples, n_channels = frame.shape

@@ -136,6 +136,23 @@ class Pipeline:
         self._fine_toa_s = np.zeros(self.n_devices)
         self._last_offsets = np.zeros(self.n_devices, dtype=np.int64)
         self._recent: collections.deque = collections.deque(maxlen=RECENTRE_FRAMES)
+        self.compile_s = self._compile_kernels()
+
+    def _compile_kernels(self) -> float:
+        """One silent hop through throwaway stages of the same shapes, so that numba compiles (first run after
+        an install, a few seconds) or loads from its on-disk cache (milliseconds) every per-hop kernel here and
+        not in the first block of a paced or live stream. Returns the seconds it took."""
+        t0 = time.perf_counter()
+        cfg, m = self.config, self.n_devices
+        stft = beamform.StreamingStft(m, frame_samples=cfg.frame_samples, hop_samples=cfg.hop_samples)
+        spectra = stft.process(np.zeros((cfg.hop_samples, m), np.float32))
+        if self.gcc is not None:
+            estimators.GccPhat(m, n_fft=cfg.frame_samples, sample_rate_hz=cfg.working_rate_hz,
+                               max_tdoa_s=cfg.max_tdoa_s).process(spectra, valid=np.ones(m, bool))
+        beamform.DelayAndSum(m, frame_samples=cfg.frame_samples, hop_samples=cfg.hop_samples,
+                             sample_rate_hz=cfg.working_rate_hz, weighting=cfg.weighting
+                             ).process_spectra(spectra, np.zeros(m), valid=np.ones(m, bool))
+        return time.perf_counter() - t0
 
     @property
     def device_counters(self) -> list[DeviceCounters]:

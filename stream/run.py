@@ -247,6 +247,7 @@ def _finalise(report, out, cfg, pipeline, fixture, names, paths, collector, t_wa
             "block_ms_p95": float(np.percentile(block_ms, 95)),
             "hop_ms": 1e3 * cfg.hop_samples / fs,
             "cpu_fraction_of_one_core": float(np.median(block_ms) / (1e3 * cfg.hop_samples / fs)),
+            "kernel_compile_s": pipeline.compile_s,   # numba: compile or cache load before the first block
         }
         if pipeline.calibrator is not None:
             report["calibration"] = {**pipeline.calibrator.report(), "applied": pipeline.geometry_log}
