@@ -71,7 +71,7 @@ from typing import Literal
 import numba
 import numpy as np
 
-from .stft import StreamingIstft, StreamingStft, _overlap_add, istft, stft
+from .stft import StreamingIstft, StreamingStft, _istft_process, istft, stft
 
 __all__ = ["DelayAndSum", "delay_and_sum"]
 
@@ -374,13 +374,10 @@ def _das_beamform(X: np.ndarray, toa: np.ndarray, valid: np.ndarray, f64: np.nda
 def _das_process(X: np.ndarray, toa: np.ndarray, valid: np.ndarray, f64: np.ndarray, fstate: np.ndarray,
                  istate: np.ndarray, f32: np.ndarray, Z: np.ndarray, ola: np.ndarray,
                  ola_state: np.ndarray) -> np.ndarray:
-    """:func:`_beamform`, then ``irfft(Y)`` and the weighted overlap-add (``beamform.stft._overlap_add``);
-    returns the next ``hop`` output samples, float32."""
+    """:func:`_beamform`, then the synthesis of ``Y`` (``beamform.stft._istft_process``: ``irfft`` and the
+    weighted overlap-add); returns the next ``hop`` output samples, float32."""
     _beamform(X, toa, valid, f64, fstate, istate, f32, Z)
-    n = ola.shape[0] // 3
-    out = np.empty(ola_state[1], np.float32)
-    _overlap_add(np.fft.irfft(Z[X.shape[0]], n), ola, ola_state, out)
-    return out
+    return _istft_process(Z[X.shape[0]], ola, ola_state)
 
 
 class DelayAndSum:
@@ -464,7 +461,6 @@ class DelayAndSum:
 
         self.n_channels = int(n_channels)
         self.sample_rate_hz = float(sample_rate_hz)
-        self.weighting: Weighting = weighting
         self._stft = StreamingStft(self.n_channels, frame_samples=frame_samples, hop_samples=hop_samples, window=window)
         self.frame_samples = self._stft.frame_samples
         self.hop_samples = self._stft.hop_samples
@@ -521,6 +517,11 @@ class DelayAndSum:
         self._fstate[_MASS] = 0.0
         self._istate[_N_UPDATES] = 0
         self._weights.fill(np.float32(1.0 / self.n_channels))
+
+    @property
+    def weighting(self) -> Weighting:
+        """``"equal"`` or ``"adaptive"``, as constructed (the kernels read it from their state)."""
+        return "adaptive" if self._istate[_ADAPTIVE] else "equal"
 
     @property
     def channel_weights(self) -> np.ndarray:
