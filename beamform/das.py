@@ -55,11 +55,12 @@ Implementation
 One hop of :meth:`DelayAndSum.process_spectra` is one compiled numba call (``_das_process``):
 validity, steering, weights, sum, then ``irfft`` (rocket-fft's ``np.fft`` inside numba) and the
 weighted overlap-add of :mod:`beamform.stft`. The steering is not tabulated per TOA: per channel the
-phase step ``omega_1 toa_i`` is reduced modulo ``2 pi`` (in turns, exactly), two exact phasors
-``e_1 = exp(i omega_1 toa)`` and ``e_K`` seed float64 recurrences for ``exp(i omega_k toa)``,
-``k < K``, and for every K-th bin, and each bin is a float32 product of the two (error < 2e-7 relative
-for any TOA, all bins). The statistics (``C``, the fit, the weights) are float64; the band
-cross-power of a frame is summed in float32 SIMD lanes.
+phase step ``omega_1 toa_i`` is reduced modulo ``2 pi`` (in turns, exactly), the exact phasor
+``e_1 = exp(i omega_1 toa)`` seeds a float64 recurrence for ``exp(i omega_k toa)``, ``k <= K``, whose
+last term ``e_K`` seeds a second one for every K-th bin, and each bin is a float32 product of the two
+(error < 2e-7 relative for any TOA, all bins; two transcendental calls per channel and frame). The
+statistics (``C``, the fit, the weights) are float64; the band cross-power of a frame is summed in
+float32 SIMD lanes.
 
 The pure function :func:`delay_and_sum` runs the same stage over a whole recording.
 """
@@ -71,7 +72,7 @@ from typing import Literal
 import numba
 import numpy as np
 
-from .stft import StreamingIstft, StreamingStft, _istft_process, istft, stft
+from .stft import StreamingIstft, StreamingStft, _synthesise, istft, stft
 
 __all__ = ["DelayAndSum", "delay_and_sum"]
 
@@ -135,27 +136,23 @@ def _dot(a: np.ndarray, b: np.ndarray) -> float:
 
 
 @numba.njit(cache=True, nogil=True)
-def _steer(x: np.ndarray, turns: float, fine: np.ndarray, row: np.ndarray, weight: float, out: np.ndarray,
+def _steer(x: np.ndarray, kr: float, ki: float, fine: np.ndarray, row: np.ndarray, weight: float, out: np.ndarray,
            accumulate: bool) -> None:
     """``out (+)= weight exp(+i 2 pi b turns) X(b)`` for every bin ``b`` (eqs. 7-8 for one channel).
 
     ``x`` and ``out`` are interleaved (re, im) float32 rows of ``n_bins`` values; ``turns`` is
     ``omega_1 toa / 2 pi`` reduced to [-1/2, 1/2] (whole turns drop out exactly); ``fine`` (2, K)
-    holds ``f_k = exp(i 2 pi k turns)``, ``k < K``. With ``b = j K + k`` the steering is
-    ``c_j f_k``, ``c_j = exp(i 2 pi j K turns)``: ``c`` follows the recurrence
-    ``c_{j+1} = c_j e_K`` in float64 from the exact ``e_K = exp(i 2 pi (K turns mod 1))``
-    (error ~ j 1e-16), the weight is folded into ``c_j``, and each block of K bins is the
-    float32 product ``c_j f_k`` (vectorised along k; steering error <= ~2e-7 relative).
-    ``row`` is a float32 work row of ``2 J K`` values.
+    holds ``f_k = exp(i 2 pi k turns)``, ``k < K``, and ``kr + i ki = e_K = exp(i 2 pi K turns)``,
+    both from the float64 recurrence of :func:`_beamform` (error ~ K 1e-16). With ``b = j K + k``
+    the steering is ``c_j f_k``, ``c_j = exp(i 2 pi j K turns)``: ``c`` follows the recurrence
+    ``c_{j+1} = c_j e_K`` in float64 (error ~ (j + 1) K 1e-16), the weight is folded into ``c_j``,
+    and each block of K bins is the float32 product ``c_j f_k`` (vectorised along k; steering
+    error <= ~2e-7 relative). ``row`` is a float32 work row of ``2 J K`` values.
     """
     n_bins = x.shape[0] // 2
     n_fine = fine.shape[1]
     fr = fine[0]
     fi = fine[1]
-    v = n_fine * turns
-    v -= np.rint(v)
-    kr = math.cos(_TWO_PI * v)
-    ki = math.sin(_TWO_PI * v)
     cr = weight
     ci = 0.0
     for base in range(0, n_bins, n_fine):
@@ -310,7 +307,7 @@ def _beamform(X: np.ndarray, toa: np.ndarray, valid: np.ndarray, f64: np.ndarray
         weights[:] = 0.0
         return
     # fine[i, :, k] = exp(i 2 pi k turns_i) by the recurrence f_{k+1} = f_k e_1 in float64, all
-    # channels in step (error ~ k 1e-16).
+    # channels in step (error ~ k 1e-16); it ends at f_K = e_K, the coarse step of _steer.
     fr = work[_F_RE]
     fi = work[_F_IM]
     fr[:] = 1.0
@@ -327,11 +324,11 @@ def _beamform(X: np.ndarray, toa: np.ndarray, valid: np.ndarray, f64: np.ndarray
         for i in range(m):
             weights[i] = w if ok[i] else np.float32(0.0)
             if ok[i]:
-                _steer(xf[i], turns[i], fine[i], row, np.float64(w), y, True)
+                _steer(xf[i], fr[i], fi[i], fine[i], row, np.float64(w), y, True)
         return
     for i in range(m):
         if ok[i]:
-            _steer(xf[i], turns[i], fine[i], row, 1.0, zf[i], False)
+            _steer(xf[i], fr[i], fi[i], fine[i], row, 1.0, zf[i], False)
     # Band cross-power of this frame into the smoothed statistics, valid pairs only.
     fstate[_MASS] = fstate[_FORGET] * fstate[_MASS] + 1.0
     rate = 1.0 / fstate[_MASS]
@@ -362,22 +359,55 @@ def _beamform(X: np.ndarray, toa: np.ndarray, valid: np.ndarray, f64: np.ndarray
                     y[t] += wi * zi[t]
 
 
+# Return codes of the entry kernels (nothing is computed or changed unless _OK).
+_OK, _BAD_SPECTRA_SHAPE, _BAD_TOA_SHAPE, _BAD_VALID_SHAPE = 0, 1, 2, 3
+# Entry kernels are compiled for exactly these types (eagerly, from the cache): the common inputs
+# pass without a conversion, anything else is a TypeError at the call and the caller converts.
+_ENTRY_ARGS = (
+    numba.complex64[:, ::1],  # X = spectra.T (M, n_bins), channel-major
+    numba.types.Array(numba.float64, 1, "A", readonly=True),  # toa: any 1-D float64 array
+    numba.types.Array(numba.bool_, 1, "A", readonly=True),  # valid: any 1-D bool array
+    numba.float64[:, ::1], numba.float64[::1], numba.int64[::1], numba.float32[::1],  # f64, fstate, istate, f32
+    numba.complex64[:, ::1],  # Z
+)
+
+
 @numba.njit(cache=True, nogil=True)
+def _check_inputs(X: np.ndarray, toa: np.ndarray, valid: np.ndarray, Z: np.ndarray) -> int:
+    """``_OK`` or which of the inputs has the wrong shape (``X`` must be (M, n_bins) like ``Z[:M]``)."""
+    m = Z.shape[0] - 1
+    if X.shape[0] != m or X.shape[1] != Z.shape[1]:
+        return _BAD_SPECTRA_SHAPE
+    if toa.shape[0] != m:
+        return _BAD_TOA_SHAPE
+    if valid.shape[0] != m:
+        return _BAD_VALID_SHAPE
+    return _OK
+
+
+@numba.njit(numba.int64(*_ENTRY_ARGS, numba.complex64[::1]), cache=True, nogil=True)
 def _das_beamform(X: np.ndarray, toa: np.ndarray, valid: np.ndarray, f64: np.ndarray, fstate: np.ndarray,
-                  istate: np.ndarray, f32: np.ndarray, Z: np.ndarray) -> np.ndarray:
-    """:func:`_beamform` returning a new copy of ``Y``, shape (n_bins,), complex64."""
-    _beamform(X, toa, valid, f64, fstate, istate, f32, Z)
-    return Z[X.shape[0]].copy()
+                  istate: np.ndarray, f32: np.ndarray, Z: np.ndarray, out: np.ndarray) -> int:
+    """:func:`_beamform`, ``Y`` copied into ``out`` (n_bins,) complex64; a return code."""
+    code = _check_inputs(X, toa, valid, Z)
+    if code == _OK:
+        _beamform(X, toa, valid, f64, fstate, istate, f32, Z)
+        out[:] = Z[Z.shape[0] - 1]
+    return code
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(numba.int64(*_ENTRY_ARGS, numba.float32[::1], numba.int64[::1], numba.float32[::1]),
+            cache=True, nogil=True)
 def _das_process(X: np.ndarray, toa: np.ndarray, valid: np.ndarray, f64: np.ndarray, fstate: np.ndarray,
-                 istate: np.ndarray, f32: np.ndarray, Z: np.ndarray, ola: np.ndarray,
-                 ola_state: np.ndarray) -> np.ndarray:
-    """:func:`_beamform`, then the synthesis of ``Y`` (``beamform.stft._istft_process``: ``irfft`` and the
-    weighted overlap-add); returns the next ``hop`` output samples, float32."""
-    _beamform(X, toa, valid, f64, fstate, istate, f32, Z)
-    return _istft_process(Z[X.shape[0]], ola, ola_state)
+                 istate: np.ndarray, f32: np.ndarray, Z: np.ndarray, ola: np.ndarray, ola_state: np.ndarray,
+                 out: np.ndarray) -> int:
+    """:func:`_beamform`, then the synthesis of ``Y`` (``irfft`` and the weighted
+    overlap-add of ``beamform.stft``) into ``out``, the next ``hop`` samples; a return code."""
+    code = _check_inputs(X, toa, valid, Z)
+    if code == _OK:
+        _beamform(X, toa, valid, f64, fstate, istate, f32, Z)
+        _synthesise(Z[Z.shape[0] - 1], ola, ola_state, out)
+    return code
 
 
 class DelayAndSum:
@@ -504,8 +534,11 @@ class DelayAndSum:
         self._aligned = np.zeros((m + 1, self.n_bins), dtype=np.complex64)  # Z_i, then Y
         self._all_valid = np.ones(m, dtype=bool)
         self._x_shape = (self.n_bins, m)
-        self._xc_shape = (m, self.n_bins)
         self._m_shape = (m,)
+        # The kernels' state and work arrays after the inputs, in one tuple each (fewer attribute
+        # loads per call); reset() clears them in place.
+        self._beamform_args = (self._f64, self._fstate, self._istate, self._f32, self._aligned)
+        self._process_args = self._beamform_args + (self._istft._ola, self._istft._state)
         self.reset()
 
     # ------------------------------------------------------------------ state
@@ -571,10 +604,14 @@ class DelayAndSum:
         ndarray, shape (hop_samples,), float32
             Beamformed samples, delayed by :attr:`latency_samples`.
         """
-        X, toa_s, valid = self._kernel_inputs(spectra, toa_s, valid)
-        ist = self._istft
-        return _das_process(X, toa_s, valid, self._f64, self._fstate, self._istate, self._f32, self._aligned,
-                            ist._ola, ist._state)
+        out = np.empty(self.hop_samples, np.float32)
+        try:
+            code = _das_process(*self._kernel_inputs(spectra, toa_s, valid), *self._process_args, out)
+        except TypeError:  # the usual dtypes with other dimensions
+            code = _das_process(*self._kernel_inputs(spectra, toa_s, valid, convert=True), *self._process_args, out)
+        if code != _OK:
+            self._raise_shape(code, spectra, toa_s, valid)
+        return out
 
     def beamform_spectra(self, spectra: np.ndarray, toa_s: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
         """Steer, weight and sum one STFT frame (eqs. 7-8) without synthesis.
@@ -593,39 +630,52 @@ class DelayAndSum:
         ndarray, shape (n_bins,), complex64
             ``Y(w) = sum_i w_i exp(+i w toa_i) X_i(w)``, a new array.
         """
-        X, toa_s, valid = self._kernel_inputs(spectra, toa_s, valid)
-        return _das_beamform(X, toa_s, valid, self._f64, self._fstate, self._istate, self._f32, self._aligned)
+        out = np.empty(self.n_bins, np.complex64)
+        try:
+            code = _das_beamform(*self._kernel_inputs(spectra, toa_s, valid), *self._beamform_args, out)
+        except TypeError:  # the usual dtypes with other dimensions
+            code = _das_beamform(*self._kernel_inputs(spectra, toa_s, valid, convert=True), *self._beamform_args, out)
+        if code != _OK:
+            self._raise_shape(code, spectra, toa_s, valid)
+        return out
 
     # ------------------------------------------------------------------ input checks
     def _kernel_inputs(
-        self, spectra: np.ndarray, toa_s: np.ndarray, valid: np.ndarray | None
+        self, spectra: np.ndarray, toa_s: np.ndarray, valid: np.ndarray | None, *, convert: bool = False
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The arrays as the kernels take them: ``spectra.T`` complex64, ``toa_s`` float64, ``valid``
-        bool, each C-contiguous and writeable (one compiled specialisation: numba types read-only or
-        strided arrays differently). The common case (StreamingStft spectra, a float64 TOA, a bool
-        mask or none) passes without a copy; ``flags.carray`` is C-contiguous, aligned and writeable.
+        """``spectra.T``, ``toa_s`` and ``valid`` (all valid when None) as the entry kernels take them
+        (``_ENTRY_ARGS``): ``spectra.T`` C-contiguous writeable complex64, ``toa_s`` float64 and ``valid``
+        bool. The usual inputs (StreamingStft spectra, a float64 TOA, a bool mask) pass unchanged
+        after a cheap check; others (and all with ``convert``) are converted and shape-checked here,
+        not by a failed call (numba takes ~70 us to word its TypeError). The kernels check the shapes.
         """
-        X = spectra.T
-        if not (X.dtype is _C64 and X.flags.carray and X.shape == self._xc_shape):
-            X = np.asarray(spectra)
-            if X.shape != self._x_shape:
-                raise ValueError(f"{X.shape=} must be ({self.n_bins}, {self.n_channels}) = (n_bins, n_channels)")
-            X = np.array(X.T, dtype=np.complex64, order="C")
-        if not (type(toa_s) is np.ndarray and toa_s.dtype is _F64 and toa_s.flags.carray
-                and toa_s.shape == self._m_shape):
-            toa = np.array(toa_s, dtype=np.float64, order="C")
-            if toa.shape != self._m_shape:
-                raise ValueError(f"{toa.shape=} must be ({self.n_channels},) = (n_channels,)")
-            toa_s = toa
         if valid is None:
             valid = self._all_valid
-        elif not (type(valid) is np.ndarray and valid.dtype is _BOOL and valid.flags.carray
-                  and valid.shape == self._m_shape):
-            ok = np.array(valid, dtype=np.bool_, order="C")
-            if ok.shape != self._m_shape:
-                raise ValueError(f"{ok.shape=} of valid must be ({self.n_channels},) = (n_channels,)")
-            valid = ok
-        return X, toa_s, valid
+        if not convert:
+            try:
+                X = spectra.T
+                if X.dtype is _C64 and X.flags.carray and toa_s.dtype is _F64 and valid.dtype is _BOOL:
+                    return X, toa_s, valid
+            except AttributeError:  # not arrays
+                pass
+        X = np.asarray(spectra)
+        if X.shape != self._x_shape:
+            self._raise_shape(_BAD_SPECTRA_SHAPE, X, toa_s, valid)
+        toa = np.asarray(toa_s, dtype=np.float64)
+        if toa.shape != self._m_shape:
+            self._raise_shape(_BAD_TOA_SHAPE, X, toa, valid)
+        ok = np.asarray(valid, dtype=np.bool_)
+        if ok.shape != self._m_shape:
+            self._raise_shape(_BAD_VALID_SHAPE, X, toa, ok)
+        return np.array(X.T, dtype=np.complex64, order="C"), toa, ok
+
+    def _raise_shape(self, code: int, spectra, toa_s, valid) -> None:
+        if code == _BAD_SPECTRA_SHAPE:
+            raise ValueError(f"spectra.shape={np.shape(spectra)} must be ({self.n_bins}, {self.n_channels}) = "
+                             "(n_bins, n_channels)")
+        if code == _BAD_TOA_SHAPE:
+            raise ValueError(f"toa.shape={np.shape(toa_s)} must be ({self.n_channels},) = (n_channels,)")
+        raise ValueError(f"valid.shape={np.shape(valid)} must be ({self.n_channels},) = (n_channels,)")
 
 
 def delay_and_sum(

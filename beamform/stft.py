@@ -161,12 +161,20 @@ def _push_hop(samples: np.ndarray, first: int, history: np.ndarray, state: np.nd
             out[t] = seg[t] * window[t]
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(numba.boolean(numba.float32[:, ::1], numba.float32[:, ::1], numba.int64[::1], numba.float32[::1],
+                          numba.float32[:, ::1], numba.complex64[:, ::1]), cache=True, nogil=True)
 def _stft_process(block: np.ndarray, history: np.ndarray, state: np.ndarray, window: np.ndarray,
-                  windowed: np.ndarray) -> np.ndarray:
-    """One hop: :func:`_push_hop` then ``rfft(windowed)``, shape (n_channels, n_bins), complex64."""
+                  windowed: np.ndarray, out: np.ndarray) -> bool:
+    """One hop: :func:`_push_hop` then ``out = rfft(windowed)`` (n_channels, n_bins), complex64.
+
+    Compiled for exactly these types (the caller converts anything else). Returns False, changing
+    nothing, when ``block`` is not (hop, n_channels).
+    """
+    if block.shape[0] != state[2] or block.shape[1] != history.shape[0]:
+        return False
     _push_hop(block, 0, history, state, window, windowed)
-    return np.fft.rfft(windowed)
+    np.fft.rfft(windowed, windowed.shape[1], -1, None, out)
+    return True
 
 
 @numba.njit(cache=True, nogil=True)
@@ -236,11 +244,17 @@ def _overlap_add(frame: np.ndarray, ola: np.ndarray, state: np.ndarray, out: np.
 
 
 @numba.njit(cache=True, nogil=True)
-def _istft_process(spectrum: np.ndarray, ola: np.ndarray, state: np.ndarray) -> np.ndarray:
-    """``irfft`` of one frame then :func:`_overlap_add`; returns ``hop = state[1]`` samples, float32."""
+def _synthesise(spectrum: np.ndarray, ola: np.ndarray, state: np.ndarray, out: np.ndarray) -> None:
+    """``irfft`` of one frame then :func:`_overlap_add`: the next ``hop = state[1]`` samples into ``out``."""
     n = ola.shape[0] // 3
-    out = np.empty(state[1], np.float32)
     _overlap_add(np.fft.irfft(spectrum, n), ola, state, out)
+
+
+@numba.njit(cache=True, nogil=True)
+def _istft_process(spectrum: np.ndarray, ola: np.ndarray, state: np.ndarray) -> np.ndarray:
+    """:func:`_synthesise` into a new array of ``hop = state[1]`` samples, float32."""
+    out = np.empty(state[1], np.float32)
+    _synthesise(spectrum, ola, state, out)
     return out
 
 
@@ -258,7 +272,7 @@ def _istft_many(spectra: np.ndarray, window: np.ndarray, hop: int) -> np.ndarray
         ola[n:] = 0.0
         state[0] = 0
         for k in range(n_frames):
-            _overlap_add(np.fft.irfft(spectra[c, k], n), ola, state, out[c, k * hop : (k + 1) * hop])
+            _synthesise(spectra[c, k], ola, state, out[c, k * hop : (k + 1) * hop])
     return out
 
 
@@ -309,6 +323,8 @@ class StreamingStft:
         self._windowed = np.empty((self.n_channels, self.frame_samples), dtype=np.float32)
         self._state = np.array([self.frame_samples, 0, self.hop_samples], dtype=np.int64)  # end, n_frames, hop
         self._block_shape = (self.hop_samples, self.n_channels)
+        self._spectra_shape = (self.n_channels, self.n_bins)
+        self._kernel_args = (self._history, self._state, self.analysis_window, self._windowed)  # reset() keeps them
 
     @property
     def n_frames(self) -> int:
@@ -337,11 +353,21 @@ class StreamingStft:
             ``spectra.T`` is the channel-major layout in which :class:`estimators.GccPhat` and
             :class:`beamform.DelayAndSum` work without a copy.
         """
-        # One compiled specialisation: C-contiguous, writeable float32 (flags.carray) without a copy.
-        if not (type(block) is np.ndarray and block.dtype is _F32 and block.flags.carray
-                and block.shape == self._block_shape):
+        out = np.empty(self._spectra_shape, np.complex64)
+        # The kernel is compiled for 2-D C-contiguous writeable float32 blocks (flags.carray); anything
+        # else is converted (and shape-checked) first, here rather than by a failed call (numba takes
+        # ~70 us to word its TypeError). The kernel checks the shape.
+        try:
+            usual = block.dtype is _F32 and block.ndim == 2 and block.flags.carray
+        except AttributeError:  # not an array
+            usual = False
+        if not usual:
             block = self._as_samples(block, single_hop=True)
-        return _stft_process(block, self._history, self._state, self.analysis_window, self._windowed).T
+        ok = _stft_process(block, *self._kernel_args, out)
+        if not ok:
+            self._as_samples(block, single_hop=True)  # raises the shape error
+            raise AssertionError("_stft_process rejected a block that _as_samples accepts")
+        return out.T
 
     def process_many(self, blocks: np.ndarray) -> np.ndarray:
         """Push ``n_frames`` hops at once; equal to ``n_frames`` calls of :meth:`process`.
@@ -386,7 +412,7 @@ class StreamingStft:
                 f"blocks.shape={x.shape} must be (n_frames * {hop}, {self.n_channels}) = "
                 "(n_frames * hop_samples, n_channels)"
             )
-        if x.dtype is _F32 and x.flags.carray:
+        if x.dtype == _F32 and x.flags.carray:
             return x
         return np.array(x, dtype=np.float32, order="C")
 
@@ -448,7 +474,7 @@ class StreamingIstft:
         ndarray, shape (hop_samples,), float32
             A new array.
         """
-        if not (type(spectrum) is np.ndarray and spectrum.dtype is _C64 and spectrum.flags.carray):
+        if not (type(spectrum) is np.ndarray and spectrum.dtype == _C64 and spectrum.flags.carray):
             spectrum = np.array(spectrum, dtype=np.complex64, order="C")
         if spectrum.shape != self._spectrum_shape:
             raise ValueError(f"{spectrum.shape=} must be ({self.n_bins},) = (n_bins,)")

@@ -335,6 +335,62 @@ def _gcc_frame(spec, valid, mag, unit, cross, corr, max_lag, mode, sample_rate_h
         i0, j0 = i, j
 
 
+# Layout of GccPhat's float32 work array (mag | unit | cross | corr, each starting at an even float
+# so the complex views are 8-byte aligned) and of its float64 parameter array, as _gcc_process takes them:
+# two arrays instead of seven arguments (every argument of a compiled call costs ~40 ns to unbox).
+_L_MAX_LAG, _L_MODE, _L_RATE_HZ, _L_CHANNELS, _L_BINS, _L_FFT, _L_CHUNK = range(7)
+_L_OFFSETS = 7  # then the start of mag, unit, cross and corr in the work array
+_N_LAYOUT = _L_OFFSETS + 4
+
+# Return codes of _gcc_process.
+_OK, _BAD_SPECTRA_SHAPE, _BAD_VALID_SHAPE = 0, 1, 2
+
+
+@_jit
+def _work_views(work, layout):
+    """The work arrays of :func:`_gcc_frame` as views of ``work`` (layout above): ``mag`` (n_bins,)
+    float32, ``unit`` (n_channels, n_bins) and ``cross`` (n_chunk, n_bins) complex64, ``corr``
+    (n_chunk, n_fft) float32."""
+    m = int(layout[_L_CHANNELS])
+    n_bins = int(layout[_L_BINS])
+    n_chunk = int(layout[_L_CHUNK])
+    o_mag = int(layout[_L_OFFSETS])
+    o_unit = int(layout[_L_OFFSETS + 1])
+    o_cross = int(layout[_L_OFFSETS + 2])
+    o_corr = int(layout[_L_OFFSETS + 3])
+    mag = work[o_mag : o_mag + n_bins]
+    unit = work[o_unit : o_unit + 2 * m * n_bins].view(np.complex64).reshape((m, n_bins))
+    cross = work[o_cross : o_cross + 2 * n_chunk * n_bins].view(np.complex64).reshape((n_chunk, n_bins))
+    n_fft = int(layout[_L_FFT])
+    corr = work[o_corr : o_corr + n_chunk * n_fft].reshape((n_chunk, n_fft))
+    return mag, unit, cross, corr
+
+
+@numba.njit(
+    numba.int64(numba.types.Array(numba.complex64, 2, "F"),  # spectra (n_bins, M), a C-contiguous transpose
+                numba.types.Array(numba.bool_, 1, "A", readonly=True),  # valid: any 1-D bool array
+                numba.float32[::1], numba.float64[::1], numba.float64[::1], numba.float64[::1]),
+    cache=True, nogil=True, error_model="numpy",
+)
+def _gcc_process(spectra, valid, work, layout, tdoa_s, confidence):
+    """:meth:`GccPhat.process` in one compiled call: shape checks, then :func:`_gcc_frame`.
+
+    ``spectra`` (n_bins, n_channels) complex64 with a C-contiguous transpose (the layout of
+    :meth:`beamform.StreamingStft.process`); compiled for exactly these types (anything else is a
+    ``TypeError`` at the call: the caller converts first). Returns ``_OK`` or which shape is wrong
+    (nothing written then).
+    """
+    m = int(layout[_L_CHANNELS])
+    if spectra.shape[0] != int(layout[_L_BINS]) or spectra.shape[1] != m:
+        return _BAD_SPECTRA_SHAPE
+    if valid.shape[0] != m:
+        return _BAD_VALID_SHAPE
+    mag, unit, cross, corr = _work_views(work, layout)
+    _gcc_frame(spectra.T, valid, mag, unit, cross, corr, int(layout[_L_MAX_LAG]), int(layout[_L_MODE]),
+               layout[_L_RATE_HZ], tdoa_s, confidence)
+    return _OK
+
+
 @_jit
 def _gcc_frames(spec, valid, mag, unit, cross, corr, max_lag, mode, sample_rate_hz, tdoa_s, confidence):
     """:func:`_gcc_frame` for each of ``n_frames`` frames: ``spec`` (n_frames, n_channels, n_bins),
@@ -433,11 +489,15 @@ class GccPhat:
         self._all_valid = np.ones(self.n_channels, np.bool_)
         # Work arrays of _gcc_frame, reused by every call (a fresh (n_pairs, n_fft) buffer per call
         # costs its page faults at 16 channels x 4096).
-        self._mag = np.zeros(self.n_bins, np.float32)
-        self._unit = np.zeros((self.n_channels, self.n_bins), np.complex64)
         n_chunk = min(self.n_pairs, max(16, _CHUNK_BYTES // (8 * self.n_bins + 4 * self.n_fft)))
-        self._cross = np.zeros((n_chunk, self.n_bins), np.complex64)
-        self._corr = np.zeros((n_chunk, self.n_fft), np.float32)
+        sizes = (self.n_bins, 2 * self.n_channels * self.n_bins, 2 * n_chunk * self.n_bins, n_chunk * self.n_fft)
+        offsets = np.cumsum((0,) + tuple(n + n % 2 for n in sizes))
+        self._work = np.zeros(int(offsets[-1]), np.float32)
+        self._layout = np.zeros(_N_LAYOUT)
+        self._layout[:_L_OFFSETS] = (self.max_lag_samples, self._mode, self.sample_rate_hz, self.n_channels,
+                                     self.n_bins, self.n_fft, n_chunk)
+        self._layout[_L_OFFSETS:] = offsets[:4]
+        self._mag, self._unit, self._cross, self._corr = _work_views(self._work, self._layout)
         self._time_work: tuple[np.ndarray, np.ndarray] | None = None  # for gcc_phat, made on first use
 
     def reset(self) -> None:
@@ -464,25 +524,45 @@ class GccPhat:
         confidence : ndarray, shape (n_pairs,), float64
             PHAT peak height in ``[0, 1]``; 0 for pairs with a silent, non-finite or invalid channel.
         """
-        if type(spectra) is not np.ndarray:
-            spectra = np.asarray(spectra)
-        if spectra.shape != self._shape:
-            raise ValueError(
-                f"spectra.shape={spectra.shape} must be (n_bins, n_channels)="
-                f"{(self.n_bins, self.n_channels)}"
-            )
-        spec = spectra.T
-        flags = spectra.flags
-        # One compiled specialisation: writeable C-contiguous complex64 (numba types a read-only
-        # array differently).
-        if spec.dtype is not _C64 or not flags.f_contiguous or not flags.writeable:
-            spec = np.array(spec, dtype=np.complex64, order="C")
-        valid = self._all_valid if valid is None else _channel_flags(valid, self._all_valid.shape)
         tdoa_s = np.empty(self.n_pairs)
         confidence = np.empty(self.n_pairs)
-        _gcc_frame(spec, valid, self._mag, self._unit, self._cross, self._corr, self.max_lag_samples, self._mode,
-                   self.sample_rate_hz, tdoa_s, confidence)
+        if valid is None:
+            valid = self._all_valid
+        # The kernel is compiled for one dtype and layout of the spectra (and the dtype of the mask);
+        # other inputs are converted first, here: a failed call costs ~70 us (numba words its TypeError).
+        try:
+            usual = spectra.dtype is _C64 and spectra.flags.farray and valid.dtype is _BOOL
+        except AttributeError:  # not arrays
+            usual = False
+        if not usual:
+            spectra, valid = self._as_kernel_inputs(spectra, valid)
+        try:
+            code = _gcc_process(spectra, valid, self._work, self._layout, tdoa_s, confidence)
+        except TypeError:  # the usual dtypes with other dimensions
+            code = _gcc_process(*self._as_kernel_inputs(spectra, valid), self._work, self._layout, tdoa_s,
+                                confidence)
+        if code != _OK:
+            self._raise_shape(code, spectra, valid)
         return tdoa_s, confidence
+
+    def _as_kernel_inputs(self, spectra, valid) -> tuple[np.ndarray, np.ndarray]:
+        """``spectra`` as complex64 with a writeable C-contiguous transpose (numba types read-only or
+        strided arrays differently), ``valid`` as a 1-D bool array; wrong shapes raise."""
+        spectra = np.asarray(spectra)
+        if spectra.shape != self._shape:
+            self._raise_shape(_BAD_SPECTRA_SHAPE, spectra, valid)
+        valid = np.asarray(valid, dtype=np.bool_)
+        if valid.ndim != 1:
+            self._raise_shape(_BAD_VALID_SHAPE, spectra, valid)
+        return _kernel_array(spectra.T, _C64).T, valid
+
+    def _raise_shape(self, code: int, spectra, valid) -> None:
+        if code == _BAD_SPECTRA_SHAPE:
+            raise ValueError(
+                f"spectra.shape={np.shape(spectra)} must be (n_bins, n_channels)="
+                f"{(self.n_bins, self.n_channels)}"
+            )
+        raise ValueError(f"valid.shape={np.shape(valid)} must be {self._all_valid.shape}")
 
     def process_many(
         self, spectra: np.ndarray, *, valid: np.ndarray | None = None
@@ -514,7 +594,7 @@ class GccPhat:
             )
         n_frames = spectra.shape[0]
         spec = spectra.transpose(0, 2, 1)
-        if spec.dtype is not _C64 or not spec.flags.c_contiguous or not spec.flags.writeable:
+        if spec.dtype != _C64 or not spec.flags.c_contiguous or not spec.flags.writeable:
             spec = np.array(spec, dtype=np.complex64, order="C")
         if valid is None:
             valid = np.ones((n_frames, self.n_channels), np.bool_)
@@ -548,7 +628,7 @@ class GccPhat:
 def _kernel_array(a, dtype: np.dtype) -> np.ndarray:
     """``a`` as a writeable C-contiguous array of ``dtype``, the one layout the kernels are compiled for (numba
     types read-only or strided arrays differently); no copy when it already is one."""
-    if type(a) is not np.ndarray or a.dtype is not dtype or not a.flags.c_contiguous or not a.flags.writeable:
+    if type(a) is not np.ndarray or a.dtype != dtype or not a.flags.c_contiguous or not a.flags.writeable:
         a = np.array(a, dtype=dtype, order="C")
     return a
 

@@ -32,6 +32,8 @@ from filterpy.kalman import KalmanFilter
 
 from .conventions import pair_matrix
 
+_F64 = np.dtype(np.float64)
+
 __all__ = ["FixedLagKalmanToa", "KalmanToa", "PinvToa", "SubsetToa"]
 
 
@@ -215,7 +217,8 @@ _P_MIN_CONFIDENCE = 5
 _P_CONFIDENCE_WEIGHTED = 6  # 1.0 or 0.0
 _P_PAIR_GATE_SIGMA = 7     # inf when off
 _P_REINIT_AFTER = 8        # reinit_after_n_gated, inf when off
-_P_GATE = 9                # eq. (17) thresholds chi2.ppf(gate_probability, k) for k = 0..n_pairs (k = 0: inf)
+_P_M = 9                   # m = n_mics - 1 (the layout of the buffer array, see _kalman_views)
+_P_GATE = 10               # eq. (17) thresholds chi2.ppf(gate_probability, k) for k = 0..n_pairs (k = 0: inf)
 
 # Slots of KalmanToa._status: per-frame results and counters, written by _kalman_step (counts are
 # stored as float64, exact below 2^53).
@@ -430,14 +433,36 @@ def _information_update(y, w, x, P, x_prior, P_prior, gate, status, work):
     return 1
 
 
+def _buffer_size(m: int) -> int:
+    """Length of the float64 array that holds every buffer of :func:`_kalman_step` (:func:`_kalman_views`)."""
+    return _N_STATUS + 2 * (2 * m + 4 * m * m) + m + 1 + _work_size(m)
+
+
+@numba.njit(cache=True, nogil=True)
+def _kalman_views(buffers, m):
+    """The buffers of :class:`KalmanToa` as views of its one float64 array (one argument of the
+    compiled call instead of eight; each costs ~40 ns to unbox): ``status`` (_N_STATUS,), ``x``,
+    ``x_prior`` (2m,), ``P``, ``P_prior`` (2m, 2m), ``toa_out`` (m + 1,) and the rest, ``work``."""
+    n = 2 * m
+    status = buffers[:_N_STATUS]
+    o = _N_STATUS
+    x = buffers[o : o + n]
+    x_prior = buffers[o + n : o + 2 * n]
+    o += 2 * n
+    P = buffers[o : o + n * n].reshape((n, n))
+    P_prior = buffers[o + n * n : o + 2 * n * n].reshape((n, n))
+    o += 2 * n * n
+    toa_out = buffers[o : o + m + 1]
+    work = buffers[o + m + 1 :]
+    return status, x, x_prior, P, P_prior, toa_out, work
+
+
 _RO_PAIRS = numba.types.Array(numba.types.float64, 1, "A", readonly=True)  # any float64 (n_pairs,) input
 _VEC = numba.types.float64[::1]
-_MAT = numba.types.float64[:, ::1]
 
 
-@numba.njit(numba.types.int64(_RO_PAIRS, _RO_PAIRS, _VEC, _MAT, _VEC, _MAT, _VEC, _VEC, _VEC, _VEC),
-            cache=True, nogil=True)
-def _kalman_step(tdoa, confidence, x, P, x_prior, P_prior, params, status, toa_out, work):
+@numba.njit(cache=True, nogil=True)
+def _step(tdoa, confidence, x, P, x_prior, P_prior, params, status, toa_out, work):
     """One frame of :class:`KalmanToa`: used pairs, predict (eq. 13), gate (eq. 17), update (eq. 14).
 
     A pair is used when its TDOA is finite and ``confidence_p > min_confidence`` (NaN excluded);
@@ -511,6 +536,13 @@ def _kalman_step(tdoa, confidence, x, P, x_prior, P_prior, params, status, toa_o
     for a in range(m):
         toa_out[a + 1] = x[a]
     return code
+
+
+@numba.njit(numba.types.int64(_RO_PAIRS, _RO_PAIRS, _VEC, _VEC), cache=True, nogil=True)
+def _kalman_step(tdoa, confidence, buffers, params):
+    """:func:`_step` on the buffers of :func:`_kalman_views`."""
+    status, x, x_prior, P, P_prior, toa_out, work = _kalman_views(buffers, int(params[_P_M]))
+    return _step(tdoa, confidence, x, P, x_prior, P_prior, params, status, toa_out, work)
 
 
 def _status_attribute(slot: int, kind: type, doc: str) -> property:
@@ -681,11 +713,10 @@ class KalmanToa(_PairModel):
         params[_P_CONFIDENCE_WEIGHTED] = float(self.confidence_weighted)
         params[_P_PAIR_GATE_SIGMA] = np.inf if pair_gate_sigma is None else pair_gate_sigma
         params[_P_REINIT_AFTER] = np.inf if reinit_after_n_gated is None else self.reinit_after_n_gated
+        params[_P_M] = m
         params[_P_GATE:] = gate
         self._params = params
-        self._status = np.zeros(_N_STATUS)
-        self._toa_out = np.zeros(self.n_mics)  # [0, x[:m]] of the last step
-        self._work = np.zeros(_work_size(m))
+        self._buffers = np.zeros(_buffer_size(m))  # every buffer of the compiled step (_kalman_views)
         self._ones = np.ones(self.n_pairs)  # the confidence when none is given: every finite pair, weight 1 / var
         self._no_pairs = np.full(self.n_pairs, np.nan)  # the TDOAs of predict(): no usable pair
         self._eye_m = np.eye(m)
@@ -694,15 +725,25 @@ class KalmanToa(_PairModel):
         self._kf.Q = self._Q
         self._kf.H = np.hstack([self._H0, np.zeros((self.n_pairs, m))])  # eq. (14)
         self._kf.R = self._tdoa_var * np.eye(self.n_pairs)
-        # The filter's buffers, written in place by every step; x_post and P_post are x and P.
-        self._kf.x = self._kf.x_post = np.zeros(2 * m)
-        self._kf.P = self._kf.P_post = np.eye(2 * m)
-        self._kf.x_prior = np.zeros(2 * m)
-        self._kf.P_prior = np.eye(2 * m)
-        # the arguments of _kalman_step after the measurement, in one tuple (fewer attribute loads)
-        self._buffers = (self._kf.x, self._kf.P, self._kf.x_prior, self._kf.P_prior, self._params, self._status,
-                         self._toa_out, self._work)
+        self._bind_buffers()
         self.reset()
+
+    def _bind_buffers(self) -> None:
+        """Point the filter's arrays at their views of ``self._buffers``, which every step writes in
+        place (``x_post`` and ``P_post`` are ``x`` and ``P``; ``_toa_out`` is ``[0, x[:m]]`` of the
+        last step)."""
+        kf = self._kf
+        # Sliced by numpy (py_func): the views then carry numpy's own float64 dtype object, which the
+        # stages' input checks compare by identity.
+        self._status, kf.x, kf.x_prior, kf.P, kf.P_prior, self._toa_out, self._work = _kalman_views.py_func(
+            self._buffers, self._m)
+        kf.x_post = kf.x
+        kf.P_post = kf.P
+
+    def __setstate__(self, state: dict) -> None:
+        # copy.deepcopy and pickle copy each view of _buffers as an array of its own: re-attach them.
+        self.__dict__.update(state)
+        self._bind_buffers()
 
     # -- public interface ------------------------------------------------------------------------
 
@@ -789,18 +830,29 @@ class KalmanToa(_PairModel):
         ndarray, shape (n_mics,), float64
             Filtered relative TOA of the current frame in seconds, ``toa_s[0] = 0``.
         """
+        conf = self._ones if confidence is None else confidence
+        # The step is compiled for 1-D float64 arrays of any layout; anything else (lists, float32)
+        # is converted first, here rather than by a failed call (numba takes ~70 us to word its
+        # TypeError). The step checks the lengths.
         try:
-            code = _kalman_step(tdoa_s, self._ones if confidence is None else confidence, *self._buffers)
-        except TypeError:  # not float64 arrays (lists, float32, 2-D): convert, then the same call
-            tdoa, conf = self._as_pairs(tdoa_s, confidence)
-            code = _kalman_step(tdoa, self._ones if conf is None else conf, *self._buffers)
+            usual = tdoa_s.dtype is _F64 and conf.dtype is _F64
+        except AttributeError:  # not arrays
+            usual = False
+        if usual:
+            try:
+                code = _kalman_step(tdoa_s, conf, self._buffers, self._params)
+            except TypeError:  # the usual dtype with other dimensions
+                usual = False
+        if not usual:
+            tdoa, conf = self._as_pairs(tdoa_s, confidence)  # raises on the wrong shape
+            code = _kalman_step(tdoa, self._ones if conf is None else conf, self._buffers, self._params)
         if code:
             self._finish_step(code, tdoa_s, confidence)
         return self._toa_out.copy()
 
     def predict(self) -> np.ndarray:
         """Advance one frame without a measurement (e.g. no speech); returns the predicted TOA."""
-        _kalman_step(self._no_pairs, self._ones, *self._buffers)
+        _kalman_step(self._no_pairs, self._ones, self._buffers, self._params)
         return self._toa_out.copy()
 
     # -- internals -------------------------------------------------------------------------------

@@ -232,6 +232,17 @@ def test_construction_validation():
         das.process_spectra(np.zeros((257, 2), np.complex64), np.zeros(2), valid=np.ones(3, bool))
     with pytest.raises(ValueError, match="toa.shape"):
         das.beamform_spectra(np.zeros((257, 2), np.complex64), np.zeros((2, 1)))
+    # the kernels' own layout (channel-major transpose, float64, bool) is shape-checked inside them
+    with pytest.raises(ValueError, match="spectra.shape"):
+        das.process_spectra(np.zeros((2, 100), np.complex64).T, np.zeros(2))
+    with pytest.raises(ValueError, match="toa.shape"):
+        das.process_spectra(np.zeros((2, 257), np.complex64).T, np.zeros(3))
+    with pytest.raises(ValueError, match="valid.shape"):
+        das.beamform_spectra(np.zeros((2, 257), np.complex64).T, np.zeros(2), valid=np.ones(1, bool))
+    # rejected calls changed nothing: the next output equals a fresh beamformer's
+    X = np.ones((2, 257), np.complex64).T
+    np.testing.assert_array_equal(das.process_spectra(X, np.zeros(2)),
+                                  DelayAndSum(2, **kw).process_spectra(X, np.zeros(2)))
 
 
 def _reverberant_scene():

@@ -70,8 +70,10 @@ def test_validation():
     with pytest.raises(ValueError, match="n_channels"):
         StreamingStft(0, frame_samples=256, hop_samples=64)
     ana = StreamingStft(2, frame_samples=256, hop_samples=64)
-    with pytest.raises(ValueError, match="block.shape"):
-        ana.process(np.zeros((63, 2), np.float32))
+    for bad in (np.zeros((63, 2), np.float32), np.zeros((64, 3)), np.zeros(64, np.float32), [[0.0, 0.0]] * 65):
+        with pytest.raises(ValueError, match="block.shape"):
+            ana.process(bad)
+    assert ana.n_frames == 0  # a rejected block changes nothing
     with pytest.raises(ValueError, match="window"):
         StreamingStft(2, frame_samples=256, hop_samples=64, window=np.ones(255))
 

@@ -211,8 +211,11 @@ def test_bad_arguments_raise_at_construction(kwargs):
 
 def test_bad_shapes_raise():
     gcc = GccPhat(3, n_fft=N, sample_rate_hz=FS_HZ)
-    with pytest.raises(ValueError, match="spectra.shape"):
-        gcc.process(np.zeros((N // 2 + 1, 2), np.complex64))
+    for bad in (np.zeros((N // 2 + 1, 2), np.complex64), np.zeros((2, N // 2 + 1), np.complex64).T,
+                np.zeros((N // 2 + 1, 3, 1)), np.zeros(N // 2 + 1, np.complex64),
+                np.zeros((N // 2 + 1, 1), np.complex64)):
+        with pytest.raises(ValueError, match="spectra.shape"):
+            gcc.process(bad)
     with pytest.raises(ValueError, match="frame.shape"):
         gcc_phat(np.zeros(N), sample_rate_hz=FS_HZ)
 
@@ -397,6 +400,10 @@ def test_valid_keyword_shape_is_checked():
     spec = np.ones((33, 3), np.complex64)
     with pytest.raises(ValueError, match="valid.shape"):
         gcc.process(spec, valid=np.ones(4, bool))
+    with pytest.raises(ValueError, match="valid.shape"):  # the kernel's own layout: checked inside it
+        gcc.process(np.ones((3, 33), np.complex64).T, valid=np.ones(4, bool))
+    with pytest.raises(ValueError, match="valid.shape"):
+        gcc.process(spec, valid=np.ones((1, 3), bool))
     with pytest.raises(ValueError, match="valid.shape"):
         gcc.process_many(spec[None], valid=np.ones(3, bool))
 
@@ -413,6 +420,12 @@ def test_read_only_and_strided_inputs():
     t2, c2 = gcc.process(frozen, valid=valid)
     np.testing.assert_array_equal(t2, t)
     np.testing.assert_array_equal(c2, c)
+    # other dtypes and layouts of the spectra and the mask are converted; same values, same result
+    for s, v in ((spec[0].astype(np.complex128), [True] * 4), (np.ascontiguousarray(spec[0]), np.ones(4, int)),
+                 (spec[0].tolist(), None)):
+        t2, c2 = gcc.process(s, valid=v)
+        np.testing.assert_array_equal(t2, t)
+        np.testing.assert_array_equal(c2, c)
     frame = noise(1)[: 2 * N].reshape(N, 2)
     wide = np.zeros((N, 4))
     wide[:, ::2] = frame

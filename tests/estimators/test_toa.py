@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import copy
+import pickle
 
 import numpy as np
 import pytest
@@ -521,13 +522,18 @@ def test_pair_gate_drops_outlying_pairs():
     np.testing.assert_allclose(est.state_covariance, P_ref, rtol=1e-12, atol=1e-12 * np.abs(P_ref).max())
 
 
-def test_deepcopy_continues_like_the_original():
+@pytest.mark.parametrize("duplicate", [copy.deepcopy, lambda est: pickle.loads(pickle.dumps(est))])
+def test_deepcopy_continues_like_the_original(duplicate):
+    # The compiled step writes the filter's arrays in place through one buffer array; a copy must
+    # get its own buffer with its filter arrays attached to it, not detached copies of the views.
     _, tdoa, _ = drifting_track(4, 30, seed=13)
     est = kalman(4)
     for y in tdoa[:10]:
         est.update(y)
-    twin = copy.deepcopy(est)
+    twin = duplicate(est)
     assert twin._kf.x is twin._kf.x_post and twin._kf.x is not est._kf.x
+    for a in (twin._kf.x, twin._kf.P, twin._kf.x_prior, twin._kf.P_prior, twin._toa_out):
+        assert np.shares_memory(a, twin._buffers) and not np.shares_memory(a, est._buffers)
     for y in tdoa[10:]:
         np.testing.assert_array_equal(twin.update(y), est.update(y))
     np.testing.assert_array_equal(twin.state_covariance, est.state_covariance)
