@@ -99,11 +99,11 @@ _HI = 3
 _STARTUP_FRAMES = 4
 _STARTUP_ITER = 5
 _N_FINE = 6       # K: fine phasors per channel (see _steer)
-# f64, float64 (M + 1 + _N_WORK, M): the smoothed cross-power C (M rows), the gains g (1 row), then 10
-# work rows: validity (0/1), reduced turns per bin, e_1 = exp(i 2 pi turns), the running fine
-# phasor, the rank-one fit's gains, its products and the float64 weights.
-_N_WORK = 10
-_OK, _TURNS, _E_RE, _E_IM, _F_RE, _F_IM, _G, _GM, _G_NEW, _W = range(_N_WORK)
+# f64, float64 (M + 1 + _N_WORK, M): the smoothed cross-power C (M rows), the gains g (1 row), then 9
+# work rows: validity (0/1), e_1 = exp(i omega_1 toa), the running fine phasor, the rank-one fit's
+# gains, its products and the float64 weights.
+_N_WORK = 9
+_VALID, _E_RE, _E_IM, _F_RE, _F_IM, _G, _GM, _G_NEW, _W = range(_N_WORK)
 # f32, float32: [channel weights (M) | fine phasors (M, 2, K) | steering row (2 J K)].
 _TWO_PI = 2.0 * math.pi
 _EXPONENT_MASK = np.uint32(0x7F800000)  # float32 exponent bits: all set <=> inf or NaN
@@ -195,7 +195,7 @@ def _adaptive_weights(stats: np.ndarray, fstate: np.ndarray, istate: np.ndarray,
     of invalid channels are kept for later frames.
     """
     m = w.shape[0]
-    ok = work[_OK]
+    ok = work[_VALID]
     g = work[_G]
     gm = work[_GM]
     g_new = work[_G_NEW]
@@ -284,8 +284,7 @@ def _beamform(X: np.ndarray, toa: np.ndarray, valid: np.ndarray, f64: np.ndarray
     xbits = X.view(np.uint32)
     zf = Z.view(np.float32)
     y = zf[m]
-    ok = work[_OK]
-    turns = work[_TURNS]
+    ok = work[_VALID]
     er = work[_E_RE]
     ei = work[_E_IM]
     n_ok = 0
@@ -299,7 +298,6 @@ def _beamform(X: np.ndarray, toa: np.ndarray, valid: np.ndarray, f64: np.ndarray
         if not good:
             u = 0.0
         u -= np.rint(u)
-        turns[i] = u
         er[i] = math.cos(_TWO_PI * u)
         ei[i] = math.sin(_TWO_PI * u)
     if n_ok == 0:
@@ -604,14 +602,8 @@ class DelayAndSum:
         ndarray, shape (hop_samples,), float32
             Beamformed samples, delayed by :attr:`latency_samples`.
         """
-        out = np.empty(self.hop_samples, np.float32)
-        try:
-            code = _das_process(*self._kernel_inputs(spectra, toa_s, valid), *self._process_args, out)
-        except TypeError:  # the usual dtypes with other dimensions
-            code = _das_process(*self._kernel_inputs(spectra, toa_s, valid, convert=True), *self._process_args, out)
-        if code != _OK:
-            self._raise_shape(code, spectra, toa_s, valid)
-        return out
+        return self._run(_das_process, self._process_args, spectra, toa_s, valid,
+                         np.empty(self.hop_samples, np.float32))
 
     def beamform_spectra(self, spectra: np.ndarray, toa_s: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
         """Steer, weight and sum one STFT frame (eqs. 7-8) without synthesis.
@@ -630,34 +622,37 @@ class DelayAndSum:
         ndarray, shape (n_bins,), complex64
             ``Y(w) = sum_i w_i exp(+i w toa_i) X_i(w)``, a new array.
         """
-        out = np.empty(self.n_bins, np.complex64)
+        return self._run(_das_beamform, self._beamform_args, spectra, toa_s, valid,
+                         np.empty(self.n_bins, np.complex64))
+
+    # ------------------------------------------------------------------ input checks
+    def _run(self, kernel, state: tuple, spectra, toa_s, valid, out: np.ndarray) -> np.ndarray:
+        """``kernel(spectra.T, toa_s, valid, *state, out)``, an entry kernel compiled for exactly the
+        types of ``_ENTRY_ARGS``; returns ``out``. The usual inputs (StreamingStft spectra, a float64
+        TOA, a bool mask or None) pass as they are after a cheap check; others are converted first
+        (:meth:`_converted`), not by a failed call (numba takes ~70 us to word its TypeError). The
+        kernel checks the shapes and changes nothing when one is wrong.
+        """
+        if valid is None:
+            valid = self._all_valid
         try:
-            code = _das_beamform(*self._kernel_inputs(spectra, toa_s, valid), *self._beamform_args, out)
-        except TypeError:  # the usual dtypes with other dimensions
-            code = _das_beamform(*self._kernel_inputs(spectra, toa_s, valid, convert=True), *self._beamform_args, out)
+            X = spectra.T
+            usual = X.dtype is _C64 and X.flags.carray and toa_s.dtype is _F64 and valid.dtype is _BOOL
+        except AttributeError:  # not arrays
+            usual = False
+        if usual:
+            try:
+                code = kernel(X, toa_s, valid, *state, out)
+            except TypeError:  # the usual dtypes with other dimensions
+                usual = False
+        if not usual:
+            code = kernel(*self._converted(spectra, toa_s, valid), *state, out)
         if code != _OK:
             self._raise_shape(code, spectra, toa_s, valid)
         return out
 
-    # ------------------------------------------------------------------ input checks
-    def _kernel_inputs(
-        self, spectra: np.ndarray, toa_s: np.ndarray, valid: np.ndarray | None, *, convert: bool = False
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``spectra.T``, ``toa_s`` and ``valid`` (all valid when None) as the entry kernels take them
-        (``_ENTRY_ARGS``): ``spectra.T`` C-contiguous writeable complex64, ``toa_s`` float64 and ``valid``
-        bool. The usual inputs (StreamingStft spectra, a float64 TOA, a bool mask) pass unchanged
-        after a cheap check; others (and all with ``convert``) are converted and shape-checked here,
-        not by a failed call (numba takes ~70 us to word its TypeError). The kernels check the shapes.
-        """
-        if valid is None:
-            valid = self._all_valid
-        if not convert:
-            try:
-                X = spectra.T
-                if X.dtype is _C64 and X.flags.carray and toa_s.dtype is _F64 and valid.dtype is _BOOL:
-                    return X, toa_s, valid
-            except AttributeError:  # not arrays
-                pass
+    def _converted(self, spectra, toa_s, valid) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``spectra.T`` C-contiguous writeable complex64, ``toa_s`` float64, ``valid`` bool, shapes checked."""
         X = np.asarray(spectra)
         if X.shape != self._x_shape:
             self._raise_shape(_BAD_SPECTRA_SHAPE, X, toa_s, valid)
