@@ -539,11 +539,12 @@ class GccPhat:
             usual = spectra.dtype is _C64 and spectra.flags.farray and valid.dtype is _BOOL
         except AttributeError:  # not arrays
             usual = False
+        if usual:
+            try:
+                code = _gcc_process(spectra, valid, self._work, self._layout, tdoa_s, confidence)
+            except TypeError:  # the usual dtypes with other dimensions
+                usual = False
         if not usual:
-            spectra, valid = self._as_kernel_inputs(spectra, valid)
-        try:
-            code = _gcc_process(spectra, valid, self._work, self._layout, tdoa_s, confidence)
-        except TypeError:  # the usual dtypes with other dimensions
             code = _gcc_process(*self._as_kernel_inputs(spectra, valid), self._work, self._layout, tdoa_s,
                                 confidence)
         if code != _OK:

@@ -442,16 +442,23 @@ def test_process_spectra_matches_numpy_reference_with_synthesis(weighting, n_cha
     np.testing.assert_allclose(y, y_ref, rtol=0, atol=2e-5 * np.abs(y_ref).max())
 
 
-def test_process_spectra_is_beamform_spectra_then_synthesis():
-    rng = np.random.default_rng(12)
-    m, frame, hop = 4, 256, 64
+def _twin_beamformers(seed: int, m: int = 4, frame: int = 256, hop: int = 64, n_frames: int = 20):
+    """Two identical DelayAndSum instances and ``n_frames`` (spectra, toa_s) inputs from a StreamingStft
+    (channel-major spectra of white noise, TOAs within +-1 ms)."""
+    rng = np.random.default_rng(seed)
     a = DelayAndSum(m, frame_samples=frame, hop_samples=hop, sample_rate_hz=FS_HZ)
     b = DelayAndSum(m, frame_samples=frame, hop_samples=hop, sample_rate_hz=FS_HZ)
     ana = StreamingStft(m, frame_samples=frame, hop_samples=hop)
-    syn = StreamingIstft(frame_samples=frame, hop_samples=hop, analysis_window=ana.analysis_window)
-    for _ in range(20):
-        X = ana.process(rng.standard_normal((hop, m)).astype(np.float32))
-        toa = rng.uniform(-1e-3, 1e-3, m)
+    frames = [(ana.process(rng.standard_normal((hop, m)).astype(np.float32)), rng.uniform(-1e-3, 1e-3, m))
+              for _ in range(n_frames)]
+    return a, b, frames
+
+
+def test_process_spectra_is_beamform_spectra_then_synthesis():
+    a, b, frames = _twin_beamformers(12)
+    syn = StreamingIstft(frame_samples=a.frame_samples, hop_samples=a.hop_samples,
+                         analysis_window=a.analysis_window)
+    for X, toa in frames:
         np.testing.assert_array_equal(a.process_spectra(X, toa), syn.process(b.beamform_spectra(X, toa)))
         np.testing.assert_array_equal(a.channel_weights, b.channel_weights)
 
@@ -504,12 +511,6 @@ def test_overflowing_toa_excludes_that_device():
 
 
 def test_spectra_layout_does_not_change_the_output():
-    rng = np.random.default_rng(11)
-    m, frame, hop = 4, 256, 64
-    a = DelayAndSum(m, frame_samples=frame, hop_samples=hop, sample_rate_hz=FS_HZ)
-    b = DelayAndSum(m, frame_samples=frame, hop_samples=hop, sample_rate_hz=FS_HZ)
-    ana = StreamingStft(m, frame_samples=frame, hop_samples=hop)
-    for k in range(20):
-        X = ana.process(rng.standard_normal((hop, m)).astype(np.float32))  # channel-major
-        toa = rng.uniform(-1e-3, 1e-3, m)
+    a, b, frames = _twin_beamformers(11)
+    for X, toa in frames:  # X channel-major
         np.testing.assert_array_equal(a.process_spectra(X, toa), b.process_spectra(np.ascontiguousarray(X), toa))
