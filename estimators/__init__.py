@@ -7,6 +7,8 @@ compiled kernels (GCC-PHAT's inverse FFTs through rocket-fft's numba overloads o
 from .conventions import SPEED_OF_SOUND_M_S, pair_matrix, pairs, ppm_to_ratio, s_to_samples, samples_to_s
 from .gcc import GccPhat, gcc_phat, gcc_phat_spectra
 from .toa import FixedLagKalmanToa, KalmanToa, PinvToa, SubsetToa
+from .multipeak import NoiseAwareGcc
+from .tracks import SourceTracker, Track
 from .chirps import ChirpTdoas, detect_chirps, extract_tdoas, gcc_phat_delays, linear_chirp, matched_filter
 from .hybrid_tdoa import (CalibrationResult, CrlbResult, HybridTdoaProblem, MicFrameScene, NoiseLevels, Scene,
                           crlb, estimate_noise_levels, mic_frame_error, random_initial_scene, simulate_problem,
@@ -27,6 +29,9 @@ __all__ = [
     "PinvToa",
     "KalmanToa",
     "FixedLagKalmanToa",
+    "NoiseAwareGcc",
+    "SourceTracker",
+    "Track",
     "ChirpTdoas",
     "detect_chirps",
     "extract_tdoas",

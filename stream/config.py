@@ -26,7 +26,8 @@ from typing import Any, Literal
 
 from .errors import ConfigError
 
-Estimator = Literal["subset", "pinv", "kalman", "smoother"]
+Estimator = Literal["tracks", "subset", "pinv", "kalman", "smoother"]
+GccWeighting = Literal["subtract", "subtract-snr", "phat"]
 Weighting = Literal["equal", "adaptive"]
 CalibrationMethod = Literal["hybrid", "baseline"]
 CalibrationApply = Literal["drift", "offsets", "none"]
@@ -45,7 +46,7 @@ class EngineConfig:
     smallest usable GCC-PHAT peak ``5 / sqrt(frame_samples)``.
     """
 
-    estimator: Estimator = "kalman"
+    estimator: Estimator = "tracks"
     working_rate_hz: float | None = None
     frame_samples: int | None = None
     hop_samples: int | None = None
@@ -58,6 +59,16 @@ class EngineConfig:
     min_confidence: float | None = None
     init_max_residual_s: float = 5e-5
     smoother_lag_frames: int = 4
+    # Several sources (estimator = "tracks", estimators.tracks): speech presence, noise-aware GCC, track bank
+    target: str = "active-talker"                  # or "nearest DEVICE" (a device name or index)
+    vad: str = "auto"                              # speech-presence backend (stream.speech), "auto" = the default
+    gcc_weighting: GccWeighting = "subtract"       # noise cross-power removal before PHAT (estimators.multipeak)
+    n_peaks: int = 3                               # GCC peaks kept per pair
+    noise_time_constant_s: float = 1.0             # noise cross-power average over non-speech frames
+    track_tdoa_std_s: float = 1e-4                 # each track's TDOA noise
+    switch_ratio: float = 1.5                      # activity ratio that moves the beam to another talker
+    activity_time_constant_s: float = 0.4          # talker activity average over speech frames
+    forget_after_s: float = 30.0                   # a track without a hit for this long is forgotten
     # coarse alignment
     align_window_s: float = 8.0
     max_offset_s: float = 4.0
@@ -102,8 +113,22 @@ class EngineConfig:
 
     def validate(self) -> None:
         """Raise ConfigError with the option, its value and the condition it breaks."""
-        if self.estimator not in ("subset", "pinv", "kalman", "smoother"):
-            raise ConfigError(f"estimator={self.estimator!r} must be one of subset, pinv, kalman, smoother")
+        if self.estimator not in ("tracks", "subset", "pinv", "kalman", "smoother"):
+            raise ConfigError(f"estimator={self.estimator!r} must be one of tracks, subset, pinv, kalman, smoother")
+        if self.gcc_weighting not in ("subtract", "subtract-snr", "phat"):
+            raise ConfigError(f"gcc_weighting={self.gcc_weighting!r} must be 'subtract', 'subtract-snr' or 'phat'")
+        words = str(self.target).split()
+        if not words or words[0] not in ("active-talker", "nearest") or (words[0] == "nearest") != (len(words) == 2) \
+                or (words[0] == "active-talker" and len(words) != 1):
+            raise ConfigError(f"target={self.target!r} must be 'active-talker' or 'nearest DEVICE' "
+                              "(a device name or index)")
+        if int(self.n_peaks) != self.n_peaks or not 1 <= self.n_peaks <= 8:
+            raise ConfigError(f"n_peaks={self.n_peaks} must be an integer in 1..8")
+        for name in ("noise_time_constant_s", "track_tdoa_std_s", "activity_time_constant_s", "forget_after_s"):
+            if not (math.isfinite(getattr(self, name)) and getattr(self, name) > 0):
+                raise ConfigError(f"{name}={getattr(self, name)} must be > 0")
+        if not (math.isfinite(self.switch_ratio) and self.switch_ratio >= 1):
+            raise ConfigError(f"switch_ratio={self.switch_ratio} must be >= 1")
         if self.weighting not in ("equal", "adaptive"):
             raise ConfigError(f"weighting={self.weighting!r} must be 'equal' or 'adaptive'")
         if self.working_rate_hz is not None and not 1000 <= self.working_rate_hz <= 384000:

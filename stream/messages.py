@@ -96,9 +96,14 @@ class ToaEstimate:
     """Relative TOA of every device at one frame; ``toa_s[0] = 0``.
 
     ``toa_s`` is the total relative TOA in the device clocks (coarse offset plus fine estimate).
+    With several tracked sources (``estimator = "tracks"``) it is the steered track's; ``track_id`` names
+    that track (-1: none is steered and the output is the reference device), ``speech_probability`` is
+    the frame's speech presence (NaN when not measured).
     """
 
     seq: int
     time_s: float
     toa_s: np.ndarray
     gated: bool
+    track_id: int = -1
+    speech_probability: float = float("nan")

@@ -17,7 +17,7 @@ import collections
 import logging
 import time
 from dataclasses import dataclass, field
-from typing import Callable, Iterable
+from typing import Callable, Iterable, Sequence
 
 import numpy as np
 
@@ -29,6 +29,7 @@ from .align import Aligner, AlignmentEvent
 from .calibration import RetunableConditioner, StreamCalibrator
 from .condition import DeviceCounters
 from .config import EngineConfig
+from .errors import ConfigError
 from .geometry import Geometry
 from .messages import Block, Frame, FrameFlag, TdoaFrame, ToaEstimate
 
@@ -38,9 +39,28 @@ RECENTRE_FRAMES = 24   # frames whose median fine TOA decides a re-centring of t
 MAX_OFFSET_STD_S = 1e-3   # a calibrated clock offset moves the coarse alignment only when this certain
 
 
-def make_estimator(config: EngineConfig, n_devices: int):
-    """The relative-TOA estimator named by ``config.estimator``."""
+def make_estimator(config: EngineConfig, n_devices: int, device_names: Sequence[str] = ()):
+    """The relative-TOA estimator named by ``config.estimator`` (``"tracks"``: a
+    :class:`estimators.SourceTracker` whose ``target`` policy names its device by name or index)."""
     frame_period_s = config.hop_samples / config.working_rate_hz
+    if config.estimator == "tracks":
+        words = config.target.split()
+        device = None
+        if words[0] == "nearest":
+            names = list(device_names)
+            if words[1] in names:
+                device = names.index(words[1])
+            elif words[1].isdigit() and int(words[1]) < n_devices:
+                device = int(words[1])
+            else:
+                raise ConfigError(f"target={config.target!r} names no device; devices: "
+                                  f"{', '.join(names) or ', '.join(map(str, range(n_devices)))}")
+        return estimators.SourceTracker(
+            n_devices, frame_period_s=frame_period_s, sample_rate_hz=config.working_rate_hz,
+            accel_std_s_per_s2=config.accel_std_s_per_s2, tdoa_std_s=config.track_tdoa_std_s,
+            gate_probability=config.gate_probability, target=words[0], target_device=device,
+            switch_ratio=config.switch_ratio, activity_time_constant_s=config.activity_time_constant_s,
+            forget_after_s=config.forget_after_s, min_peak_value=config.min_confidence)
     if config.estimator == "subset":
         return estimators.SubsetToa(n_devices, min_confidence=config.min_confidence)
     if config.estimator == "pinv":
@@ -76,6 +96,8 @@ class PipelineState:
     aligned_input: list[np.ndarray] = field(default_factory=list)
     block_ms: list[float] = field(default_factory=list)
     offsets: list[np.ndarray] = field(default_factory=list)
+    track_id: list[int] = field(default_factory=list)
+    speech_probability: list[float] = field(default_factory=list)
 
 
 class Pipeline:
@@ -95,11 +117,17 @@ class Pipeline:
         Initial clock correction of every device (``DeviceConditioner.rate_ratio``).
     calibrator : StreamCalibrator, optional
         Periodic recalibration from a chirp beacon (detection per device, solves in a worker, swaps).
+    device_names : sequence of str
+        Device names (for ``target = "nearest NAME"``).
+    speech : object, optional
+        Speech presence per hop for ``estimator = "tracks"`` (``process(samples, valid) -> SpeechFrame``);
+        default :func:`stream.speech.make_speech_presence` with ``config.vad``.
     """
 
     def __init__(self, config: EngineConfig, device_rates_hz: Iterable[float], *, keep_input: bool = False,
                  on_block: Callable[[Block, ToaEstimate, np.ndarray], None] | None = None,
-                 rate_ratios: Iterable[float] | None = None, calibrator: StreamCalibrator | None = None) -> None:
+                 rate_ratios: Iterable[float] | None = None, calibrator: StreamCalibrator | None = None,
+                 device_names: Sequence[str] = (), speech=None) -> None:
         self.config = config
         rates = list(device_rates_hz)
         self.n_devices = len(rates)
@@ -122,10 +150,24 @@ class Pipeline:
                                            hop_samples=config.hop_samples)
         self.gcc = None
         self.estimator = None
-        if self.n_devices >= 2:
+        self.tracker: estimators.SourceTracker | None = None
+        self.speech = None
+        if self.n_devices >= 2 and config.estimator == "tracks":
+            self.gcc = estimators.NoiseAwareGcc(
+                self.n_devices, n_fft=config.frame_samples, sample_rate_hz=fs, hop_s=config.hop_samples / fs,
+                max_tdoa_s=config.max_tdoa_s, n_peaks=config.n_peaks, weighting=config.gcc_weighting,
+                noise_time_constant_s=config.noise_time_constant_s)
+            self.estimator = self.tracker = make_estimator(config, self.n_devices, device_names)
+            if speech is None:
+                from .speech import make_speech_presence
+                speech = make_speech_presence(self.n_devices, sample_rate_hz=fs, hop_samples=config.hop_samples,
+                                              backend=config.vad)
+            self.speech = speech
+        elif self.n_devices >= 2:
             self.gcc = estimators.GccPhat(self.n_devices, n_fft=config.frame_samples, sample_rate_hz=fs,
                                           max_tdoa_s=config.max_tdoa_s)
             self.estimator = make_estimator(config, self.n_devices)
+        self._reference_only = np.zeros(self.n_devices, bool)
         self.das = beamform.DelayAndSum(self.n_devices, frame_samples=config.frame_samples,
                                         hop_samples=config.hop_samples, sample_rate_hz=fs,
                                         weighting=config.weighting)
@@ -146,7 +188,13 @@ class Pipeline:
         cfg, m = self.config, self.n_devices
         stft = beamform.StreamingStft(m, frame_samples=cfg.frame_samples, hop_samples=cfg.hop_samples)
         spectra = stft.process(np.zeros((cfg.hop_samples, m), np.float32))
-        if self.gcc is not None:
+        if self.tracker is not None:
+            gcc = estimators.NoiseAwareGcc(m, n_fft=cfg.frame_samples, sample_rate_hz=cfg.working_rate_hz,
+                                           hop_s=cfg.hop_samples / cfg.working_rate_hz, max_tdoa_s=cfg.max_tdoa_s,
+                                           n_peaks=cfg.n_peaks, weighting=cfg.gcc_weighting)
+            gcc.process(spectra, speech_probability=0.0, valid=np.ones(m, bool))
+            gcc.noise_peaks()
+        elif self.gcc is not None:
             estimators.GccPhat(m, n_fft=cfg.frame_samples, sample_rate_hz=cfg.working_rate_hz,
                                max_tdoa_s=cfg.max_tdoa_s).process(spectra, valid=np.ones(m, bool))
         beamform.DelayAndSum(m, frame_samples=cfg.frame_samples, hop_samples=cfg.hop_samples,
@@ -209,7 +257,21 @@ class Pipeline:
                 self.apply_geometry(geometry, next_first_sample=block.first_sample + cfg.hop_samples)
         self._follow_offsets(block)
         spectra = self.stft.process(block.samples)
-        if self.gcc is not None:
+        valid, track_id, p_speech = block.valid, -1, float("nan")
+        if self.tracker is not None:
+            p_speech = self.speech.process(block.samples, block.valid).probability
+            peak_tdoa, peak_value = self.gcc.process(spectra, speech_probability=p_speech, valid=block.valid,
+                                                     raw=p_speech < self.tracker.speech_threshold)
+            tdoa = TdoaFrame(block.seq, time_s, peak_tdoa[:, 0], peak_value[:, 0])
+            fine = self.tracker.update(peak_tdoa, peak_value, speech_probability=p_speech,
+                                       usable=self.gcc.usable, time_s=time_s, noise_peaks=self.gcc.noise_peaks)
+            gated = self.tracker.gated
+            track_id = self.tracker.steered_id
+            if track_id < 0:   # no talker tracked: the output is the reference device, not a beam at the noise
+                valid = self._reference_only
+                valid[:] = False
+                valid[int(np.argmax(block.valid))] = True
+        elif self.gcc is not None:
             tdoa_s, confidence = self.gcc.process(spectra, valid=block.valid)   # invalid device: confidence 0
             tdoa = TdoaFrame(block.seq, time_s, tdoa_s, confidence)
             fine = self.estimator.update(tdoa.tdoa_s, tdoa.confidence)
@@ -218,8 +280,8 @@ class Pipeline:
             tdoa = TdoaFrame(block.seq, time_s, np.zeros(0), np.zeros(0))
             fine, gated = np.zeros(1), False
         self._fine_toa_s = fine
-        enhanced = self.das.process_spectra(spectra, fine, valid=block.valid)
-        toa = ToaEstimate(block.seq, time_s, block.offsets_samples / fs + fine, gated)
+        enhanced = self.das.process_spectra(spectra, fine, valid=valid)
+        toa = ToaEstimate(block.seq, time_s, block.offsets_samples / fs + fine, gated, track_id, p_speech)
         self._record(block, tdoa, toa, enhanced)
         self._recentre(fine, block)
         self.state.block_ms.append(1e3 * (time.perf_counter() - t0))
@@ -334,6 +396,8 @@ class Pipeline:
         s.confidence.append(tdoa.confidence)
         s.valid.append(block.valid)
         s.offsets.append(block.offsets_samples)
+        s.track_id.append(toa.track_id)
+        s.speech_probability.append(toa.speech_probability)
         s.weights.append(np.asarray(self.das.channel_weights, dtype=np.float32).copy())
         s.enhanced.append(enhanced)
         if self.keep_input:

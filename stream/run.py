@@ -100,7 +100,7 @@ def make_calibrator(cfg: EngineConfig, n_devices: int, out: Path, *, device_name
 def run_replay(inputs: Sequence[str | Path], out_dir: str | Path, *, config: EngineConfig | None = None,
                overrides: Sequence[tuple[dict[str, Any], str]] = (),
                solver: Callable[[CalibrationSnapshot], Geometry] | None = None,
-               on_geometry: Callable[[Geometry], None] | None = None) -> RunOutcome:
+               on_geometry: Callable[[Geometry], None] | None = None, speech=None) -> RunOutcome:
     """Replay recordings through the live path and write every output into ``out_dir``.
 
     Parameters
@@ -145,10 +145,12 @@ def run_replay(inputs: Sequence[str | Path], out_dir: str | Path, *, config: Eng
             keep = fixture is not None and src.duration_s <= KEEP_INPUT_MAX_S
             calibrator = make_calibrator(cfg, len(src.active), out, device_names=[d.name for d in src.active],
                                          solver=solver, on_geometry=on_geometry)
-            pipeline = Pipeline(cfg, src.sample_rates_hz, keep_input=keep, calibrator=calibrator)
+            pipeline = Pipeline(cfg, src.sample_rates_hz, keep_input=keep, calibrator=calibrator,
+                                device_names=[d.name for d in src.active], speech=speech)
             wav = sinks.WavSink(out / "enhanced.wav", sample_rate_hz=cfg.working_rate_hz,
                                 skip_samples=pipeline.latency_samples)
-            csv_sink = sinks.ToaCsvSink(out / "toa.csv", [d.name for d in src.active])
+            csv_sink = sinks.ToaCsvSink(out / "toa.csv", [d.name for d in src.active],
+                                        tracks=pipeline.tracker is not None)
             written = [0]
 
             def flush_outputs() -> None:
@@ -156,7 +158,7 @@ def run_replay(inputs: Sequence[str | Path], out_dir: str | Path, *, config: Eng
                 for k in range(written[0], len(st.enhanced)):
                     wav.write(st.enhanced[k])
                 for k in range(csv_sink.n_rows, len(st.time_s)):
-                    csv_sink.write(st.time_s[k], st.toa_s[k], st.gated[k])
+                    csv_sink.write(st.time_s[k], st.toa_s[k], st.gated[k], st.track_id[k], st.speech_probability[k])
                 written[0] = len(st.enhanced)
 
             # write out every FLUSH_BLOCKS blocks: few, larger writes; at most that much is lost on a hard kill
@@ -249,6 +251,18 @@ def _finalise(report, out, cfg, pipeline, fixture, names, paths, collector, t_wa
             "cpu_fraction_of_one_core": float(np.median(block_ms) / (1e3 * cfg.hop_samples / fs)),
             "kernel_compile_s": pipeline.compile_s,   # numba: compile or cache load before the first block
         }
+        if pipeline.tracker is not None:
+            sources = pipeline.tracker.report()
+            sources["speech_presence"] = {"backend": getattr(pipeline.speech, "backend", type(pipeline.speech).__name__),
+                                          "speech_fraction": float(np.mean(np.asarray(pipeline.state.speech_probability)
+                                                                          >= pipeline.tracker.speech_threshold))
+                                          if pipeline.state.speech_probability else 0.0}
+            if sources["n_speech_frames"] == 0:
+                log.warning("No speech was detected in the whole stream; the output is the reference device "
+                            "(no beam is steered at a noise source).")
+            elif not any(t["kind"] == "speech" for t in sources["tracks"]):
+                log.warning("Speech was detected but no talker could be tracked; the output is the reference device.")
+            report["sources"] = sources
         if pipeline.calibrator is not None:
             report["calibration"] = {**pipeline.calibrator.report(), "applied": pipeline.geometry_log}
             if cfg.plots and pipeline.calibrator.geometry is not None:

@@ -53,15 +53,19 @@ class WavSink:
 class ToaCsvSink:
     """Streams the TOA track: frame centre time (reference clock, s), relative TOA of every device (s), gated."""
 
-    def __init__(self, path: str | Path, device_names: Sequence[str]) -> None:
+    def __init__(self, path: str | Path, device_names: Sequence[str], *, tracks: bool = False) -> None:
         self.path = Path(path)
         self._fh = open(self.path, "w", newline="")
         self._writer = csv.writer(self._fh)
-        self._writer.writerow(["time_s", *[f"toa_s_{k}_{n}" for k, n in enumerate(device_names)], "gated"])
+        self.tracks = tracks
+        extra = ["steered_track", "speech_probability"] if tracks else []
+        self._writer.writerow(["time_s", *[f"toa_s_{k}_{n}" for k, n in enumerate(device_names)], "gated", *extra])
         self.n_rows = 0
 
-    def write(self, time_s: float, toa_s: np.ndarray, gated: bool) -> None:
-        self._writer.writerow([f"{time_s:.6f}", *[f"{v:.9f}" for v in toa_s], int(gated)])
+    def write(self, time_s: float, toa_s: np.ndarray, gated: bool, track_id: int = -1,
+              speech_probability: float = float("nan")) -> None:
+        extra = [int(track_id), f"{speech_probability:.3f}"] if self.tracks else []
+        self._writer.writerow([f"{time_s:.6f}", *[f"{v:.9f}" for v in toa_s], int(gated), *extra])
         self.n_rows += 1
         if self.n_rows % 256 == 0:
             self._fh.flush()

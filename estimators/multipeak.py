@@ -1,0 +1,360 @@
+"""Noise-aware GCC-PHAT with the N best peaks of every pair (several sources at once).
+
+:class:`NoiseAwareGcc` extends the TOA paper's eqs. (4)-(6) in two ways, for rooms with a persistent
+point noise source and with more than one talker:
+
+1. **Noise cross-power spectrum removal.** Every pair's noise cross-power spectrum is tracked on
+   non-speech frames, recursively and weighted by the frame's speech presence ``p`` in ``[0, 1]``::
+
+       Phi_ij <- Phi_ij + a (1 - p) (X_i X_j^* - Phi_ij),    a = 1 - exp(-hop / noise_time_constant)
+
+   and removed from the frame's cross spectrum before the PHAT weighting::
+
+       G_ij = X_i X_j^* - Phi_ij                       (weighting "subtract")
+       G_ij = (X_i X_j^* - Phi_ij) * max(0, 1 - |Phi_ij| / |X_i X_j^*|)   ("subtract-snr")
+       r_ij = irfft(G_ij / |G_ij|)
+
+   A coherent noise source contributes ``|N|^2 H_i H_j^*`` to ``X_i X_j^*``; after the removal only
+   its fluctuation ``(|N|^2 - E|N|^2) H_i H_j^*`` is left, whose sign is random from bin to bin, so
+   the PHAT correlation no longer has a peak at the noise source's delay. ``"subtract-snr"``
+   further down-weights bins in which the frame's cross power is not above the noise cross power
+   (a per-bin SNR weight, in the spirit of the maximum-likelihood GCC weighting). ``"phat"`` is the
+   plain eq. (4) on ``X_i X_j^*`` (no removal) for comparison.
+2. **The N best peaks** of every pair's correlation within ``|lag| <= max_lag_samples`` (local maxima,
+   highest first, refined to a fraction of a sample with the three-point parabola) instead of the
+   single maximum of eq. (6), as BeamformIt keeps the N best delays per channel pair.
+
+:meth:`NoiseAwareGcc.noise_peaks` gives the N best peaks of the PHAT-weighted noise cross-power
+spectrum itself: the delays of the persistent noise sources.
+
+All of it is one compiled (numba) call per frame, FFTs included (rocket-fft's ``np.fft`` inside numba).
+Conventions as in :mod:`estimators.conventions`: ``tdoa_s[p] = toa_i - toa_j`` for ``p = (i, j)``.
+"""
+from __future__ import annotations
+
+import math
+from typing import Literal
+
+import numba
+import numpy as np
+
+from ._numba import borrowed
+
+__all__ = ["NoiseAwareGcc", "Weighting"]
+
+Weighting = Literal["phat", "subtract", "subtract-snr"]
+_WEIGHTINGS = {"phat": 0, "subtract": 1, "subtract-snr": 2}
+
+_jit = numba.njit(cache=True, nogil=True, error_model="numpy")
+
+# Parameter slots of the compiled call (one float64 array instead of many arguments).
+_P_MAX_LAG, _P_RATE_HZ, _P_ALPHA, _P_MODE, _P_SPEECH, _P_N_PEAKS, _P_UPDATE = range(7)
+_N_PARAMS = 7
+
+_OK, _BAD_SPECTRA_SHAPE, _BAD_VALID_SHAPE = 0, 1, 2
+_EPS_REL = np.float32(1e-6)
+_TINY = np.float32(np.finfo(np.float32).tiny)
+
+
+@_jit
+def _top_peaks(row, max_lag, rate_hz, out_tdoa, out_value):
+    """The ``len(out_tdoa)`` highest local maxima of the correlation ``row`` (n_fft,) over lags
+    ``-max_lag..max_lag`` (circular indices), highest first, each refined by the three-point parabola
+    (clipped to half a sample) and returned in seconds; unfilled slots get value 0 and tdoa 0."""
+    n_fft = row.shape[0]
+    k_best = out_tdoa.shape[0]
+    for q in range(k_best):
+        out_tdoa[q] = 0.0
+        out_value[q] = 0.0
+    n_found = 0
+    for lag in range(-max_lag, max_lag + 1):
+        k = lag + n_fft if lag < 0 else lag
+        r0 = np.float64(row[k])
+        if n_found == k_best and r0 <= out_value[k_best - 1]:
+            continue
+        rm = np.float64(row[k - 1 if k > 0 else n_fft - 1])
+        rp = np.float64(row[k + 1 if k < n_fft - 1 else 0])
+        if not (r0 >= rm and r0 > rp) or r0 <= 0.0:
+            continue
+        den = rm - 2.0 * r0 + rp
+        d = 0.0
+        if den < 0.0:
+            d = min(max(0.5 * (rm - rp) / den, -0.5), 0.5)
+        t = min(max(lag + d, -max_lag), max_lag) / rate_hz
+        # insert, keeping the list sorted by value (descending)
+        q = n_found if n_found < k_best else k_best - 1
+        while q > 0 and out_value[q - 1] < r0:
+            if q < k_best:
+                out_value[q] = out_value[q - 1]
+                out_tdoa[q] = out_tdoa[q - 1]
+            q -= 1
+        out_value[q] = r0
+        out_tdoa[q] = t
+        if n_found < k_best:
+            n_found += 1
+
+
+@_jit
+def _channel_ok(x, valid):
+    """Whether a channel's spectrum is usable: flagged valid, finite and not all zero."""
+    if not valid:
+        return False
+    peak = 0.0
+    for k in range(x.shape[0]):
+        a = abs(x[k])
+        if not a < np.inf:  # NaN or inf
+            return False
+        peak = max(peak, a)
+    return peak > 0.0
+
+
+@_jit
+def _pair_spectrum(xi, xj, phi, g, scratch, a, mode, update):
+    """One pair's weighted cross spectrum into ``g`` (module doc): ``X_i X_j^*`` minus the noise
+    cross power ``phi`` (not for "phat"), optional per-bin weight, PHAT normalisation; then the noise
+    average moves towards ``X_i X_j^*`` by ``a``. ``scratch`` (>= n_bins floats) holds |G|^2."""
+    n_bins = xi.shape[0]
+    peak2 = np.float32(0.0)
+    for k in range(n_bins):
+        c = xi[k] * xj[k].conjugate()
+        r = c if mode == 0 else c - phi[k]
+        g[k] = r
+        m2 = r.real * r.real + r.imag * r.imag
+        scratch[k] = m2
+        peak2 = m2 if m2 > peak2 else peak2
+    if update:
+        for k in range(n_bins):
+            c = xi[k] * xj[k].conjugate()
+            phi[k] += a * (c - phi[k])
+    eps = _EPS_REL * np.sqrt(peak2) + _TINY
+    eps2 = eps * eps
+    one = np.float32(1.0)
+    if mode == 2:
+        for k in range(n_bins):
+            c = xi[k] * xj[k].conjugate()
+            ac = np.sqrt(c.real * c.real + c.imag * c.imag)
+            an = abs(phi[k])
+            w = one - an / (ac + _TINY)
+            w = w if w > 0 else np.float32(0.0)
+            g[k] = g[k] * (w / np.sqrt(scratch[k] + eps2))
+    else:
+        for k in range(n_bins):
+            g[k] = g[k] * (one / np.sqrt(scratch[k] + eps2))
+
+
+@numba.njit(
+    numba.int64(numba.types.Array(numba.complex64, 2, "F"),  # spectra (n_bins, M), a C-contiguous transpose
+                numba.types.Array(numba.bool_, 1, "A", readonly=True),
+                numba.complex64[:, ::1],  # noise cross-power spectra (n_pairs, n_bins), state
+                numba.complex64[:, ::1],  # cross work (n_pairs, n_bins)
+                numba.float32[:, ::1],    # correlation work (n_pairs, n_fft)
+                numba.float64[::1],       # parameters
+                numba.float64[:, ::1], numba.float64[:, ::1],  # peak tdoa, value (n_pairs, n_peaks)
+                numba.bool_[::1]),        # usable channels (M,), output
+    cache=True, nogil=True, error_model="numpy",
+)
+def _frame(spectra, valid, noise, cross, corr, params, peak_tdoa, peak_value, usable):
+    """One frame: noise cross-power update and removal, PHAT, batched irfft, N best peaks per pair."""
+    n_bins, m = spectra.shape
+    if noise.shape[1] != n_bins or noise.shape[0] != m * (m - 1) // 2:
+        return _BAD_SPECTRA_SHAPE
+    if valid.shape[0] != m:
+        return _BAD_VALID_SHAPE
+    spectra, valid, noise, cross = borrowed(spectra), borrowed(valid), borrowed(noise), borrowed(cross)
+    corr, peak_tdoa, peak_value, usable = borrowed(corr), borrowed(peak_tdoa), borrowed(peak_value), borrowed(usable)
+    spec = spectra.T
+    max_lag = int(params[_P_MAX_LAG])
+    rate_hz = params[_P_RATE_HZ]
+    mode = int(params[_P_MODE])
+    a = np.float32(params[_P_ALPHA] * (1.0 - min(max(params[_P_SPEECH], 0.0), 1.0)))
+    update = params[_P_UPDATE] != 0.0
+    for i in range(m):
+        usable[i] = _channel_ok(spec[i], valid[i])
+    p = 0
+    for i in range(m - 1):
+        xi = spec[i]
+        for j in range(i + 1, m):
+            g = cross[p]
+            if usable[i] and usable[j]:
+                _pair_spectrum(xi, spec[j], noise[p], g, corr[p], a, mode, update)
+            else:
+                g[:] = 0.0
+            p += 1
+    np.fft.irfft(cross, corr.shape[1], -1, None, corr)
+    p = 0
+    for i in range(m - 1):
+        for j in range(i + 1, m):
+            if usable[i] and usable[j]:
+                _top_peaks(corr[p], max_lag, rate_hz, peak_tdoa[p], peak_value[p])
+            else:
+                peak_tdoa[p, :] = 0.0
+                peak_value[p, :] = 0.0
+            p += 1
+    return _OK
+
+
+@_jit
+def _noise_frame(noise, cross, corr, max_lag, rate_hz, peak_tdoa, peak_value):
+    """PHAT of the noise cross-power spectra themselves, irfft, N best peaks per pair."""
+    n_pairs, n_bins = noise.shape
+    for p in range(n_pairs):
+        g = cross[p]
+        phi = noise[p]
+        peak = np.float32(0.0)
+        for k in range(n_bins):
+            peak = max(peak, abs(phi[k]))
+        eps = _EPS_REL * peak + _TINY
+        for k in range(n_bins):
+            g[k] = phi[k] / (abs(phi[k]) + eps)
+    np.fft.irfft(cross, corr.shape[1], -1, None, corr)
+    for p in range(n_pairs):
+        _top_peaks(corr[p], max_lag, rate_hz, peak_tdoa[p], peak_value[p])
+
+
+class NoiseAwareGcc:
+    """GCC-PHAT of every pair with noise cross-power removal and the N best peaks (see module doc).
+
+    Parameters
+    ----------
+    n_channels : int
+        Number of channels ``M >= 2``.
+    n_fft : int
+        FFT length in samples; spectra have ``n_fft // 2 + 1`` bins.
+    sample_rate_hz : float
+        Sample rate in Hz.
+    hop_s : float
+        Time between frames in seconds (sets the noise update's smoothing constant).
+    max_tdoa_s : float
+        Largest ``|tdoa|`` searched in seconds (capped at ``n_fft // 2 - 1`` samples).
+    n_peaks : int
+        Peaks kept per pair (``N``), >= 1.
+    weighting : {"subtract", "subtract-snr", "phat"}
+        How the noise cross-power spectrum is used before the PHAT weighting (module doc).
+    noise_time_constant_s : float
+        Time constant of the recursive noise cross-power average over non-speech frames, seconds.
+    """
+
+    def __init__(self, n_channels: int, *, n_fft: int, sample_rate_hz: float, hop_s: float,
+                 max_tdoa_s: float, n_peaks: int = 3, weighting: Weighting = "subtract",
+                 noise_time_constant_s: float = 1.0) -> None:
+        if int(n_channels) != n_channels or n_channels < 2:
+            raise ValueError(f"{n_channels=} must be an integer >= 2")
+        if int(n_fft) != n_fft or n_fft < 8:
+            raise ValueError(f"{n_fft=} must be an integer number of samples >= 8")
+        for name, value in (("sample_rate_hz", sample_rate_hz), ("hop_s", hop_s), ("max_tdoa_s", max_tdoa_s),
+                            ("noise_time_constant_s", noise_time_constant_s)):
+            if not (np.isfinite(value) and value > 0):
+                raise ValueError(f"{name}={value!r} must be finite and > 0")
+        if int(n_peaks) != n_peaks or n_peaks < 1:
+            raise ValueError(f"{n_peaks=} must be an integer >= 1")
+        if weighting not in _WEIGHTINGS:
+            raise ValueError(f"{weighting=} must be one of {', '.join(_WEIGHTINGS)}")
+        self.n_channels = int(n_channels)
+        self.n_fft = int(n_fft)
+        self.n_bins = self.n_fft // 2 + 1
+        self.n_pairs = self.n_channels * (self.n_channels - 1) // 2
+        self.sample_rate_hz = float(sample_rate_hz)
+        self.n_peaks = int(n_peaks)
+        self.weighting = weighting
+        self.max_lag_samples = int(min(math.floor(max_tdoa_s * sample_rate_hz + 1e-9), self.n_fft // 2 - 1))
+        self.max_tdoa_s = self.max_lag_samples / self.sample_rate_hz
+        self.noise_time_constant_s = float(noise_time_constant_s)
+        self._params = np.zeros(_N_PARAMS)
+        self._params[_P_MAX_LAG] = self.max_lag_samples
+        self._params[_P_RATE_HZ] = self.sample_rate_hz
+        self._params[_P_ALPHA] = 1.0 - math.exp(-hop_s / noise_time_constant_s)
+        self._params[_P_MODE] = _WEIGHTINGS[weighting]
+        self._params[_P_N_PEAKS] = self.n_peaks
+        self._params[_P_UPDATE] = 1.0
+        self._noise = np.zeros((self.n_pairs, self.n_bins), np.complex64)
+        self._cross = np.zeros((self.n_pairs, self.n_bins), np.complex64)
+        self._corr = np.zeros((self.n_pairs, self.n_fft), np.float32)
+        self._usable = np.zeros(self.n_channels, np.bool_)
+        self._all_valid = np.ones(self.n_channels, np.bool_)
+        self.n_noise_frames = 0.0   # effective number of non-speech frames averaged so far
+
+    def reset(self) -> None:
+        """Forget the noise cross-power spectra."""
+        self._noise[:] = 0.0
+        self.n_noise_frames = 0.0
+
+    @property
+    def noise_cross_power(self) -> np.ndarray:
+        """Copy of the tracked noise cross-power spectra, shape (n_pairs, n_bins), complex64."""
+        return self._noise.copy()
+
+    @property
+    def usable(self) -> np.ndarray:
+        """Channels usable in the last frame (valid, finite, not silent), shape (n_channels,), bool."""
+        return self._usable.copy()
+
+    def process(self, spectra: np.ndarray, *, speech_probability: float, valid: np.ndarray | None = None,
+                update_noise: bool = True, raw: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """N best peaks of every pair for one frame; updates the noise cross-power spectra.
+
+        Parameters
+        ----------
+        spectra : ndarray, shape (n_bins, n_channels), complex64
+            One frame's channel spectra (the layout of :meth:`beamform.StreamingStft.process`; other
+            layouts are copied first).
+        speech_probability : float
+            Speech presence of the frame in ``[0, 1]``: the noise average moves by ``a (1 - p)``.
+        valid : ndarray, shape (n_channels,), bool, optional
+            Channels to use; pairs with an unusable channel get value 0.
+        update_noise : bool
+            False: use the noise cross-power spectra without updating them.
+        raw : bool
+            True: plain PHAT (no removal) for this frame, e.g. on non-speech frames, whose peaks show the
+            sources that keep sounding when nobody speaks.
+
+        Returns
+        -------
+        peak_tdoa_s : ndarray, shape (n_pairs, n_peaks), float64
+            Delays of the peaks, highest first, in seconds (``toa_i - toa_j``).
+        peak_value : ndarray, shape (n_pairs, n_peaks), float64
+            Their heights (PHAT correlation, at most 1); 0 for missing peaks and unusable pairs.
+        """
+        peak_tdoa = np.empty((self.n_pairs, self.n_peaks))
+        peak_value = np.empty((self.n_pairs, self.n_peaks))
+        if valid is None:
+            valid = self._all_valid
+        p = float(speech_probability) if np.isfinite(speech_probability) else 1.0
+        self._params[_P_SPEECH] = p
+        self._params[_P_UPDATE] = 1.0 if update_noise else 0.0
+        self._params[_P_MODE] = 0 if raw else _WEIGHTINGS[self.weighting]
+        if not (type(spectra) is np.ndarray and spectra.dtype == np.complex64 and spectra.flags.f_contiguous
+                and spectra.flags.writeable):
+            spectra = np.asarray(spectra)
+            if spectra.shape != (self.n_bins, self.n_channels):
+                raise ValueError(f"spectra.shape={spectra.shape} must be (n_bins, n_channels)="
+                                 f"{(self.n_bins, self.n_channels)}")
+            spectra = np.array(spectra.T, dtype=np.complex64, order="C").T
+        if not (type(valid) is np.ndarray and valid.dtype == np.bool_):
+            valid = np.asarray(valid, dtype=np.bool_)
+        code = _frame(spectra, valid, self._noise, self._cross, self._corr, self._params, peak_tdoa, peak_value,
+                      self._usable)
+        if code == _BAD_SPECTRA_SHAPE:
+            raise ValueError(f"spectra.shape={spectra.shape} must be (n_bins, n_channels)="
+                             f"{(self.n_bins, self.n_channels)}")
+        if code == _BAD_VALID_SHAPE:
+            raise ValueError(f"valid.shape={np.shape(valid)} must be ({self.n_channels},)")
+        if update_noise:
+            a = self._params[_P_ALPHA] * (1.0 - min(max(p, 0.0), 1.0))
+            self.n_noise_frames = (1.0 - a) * self.n_noise_frames + a / self._params[_P_ALPHA]
+        return peak_tdoa, peak_value
+
+    def noise_peaks(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """N best peaks of the PHAT-weighted noise cross-power spectra: the persistent noise sources.
+
+        Returns
+        -------
+        peak_tdoa_s, peak_value : ndarray, shape (n_pairs, n_peaks), float64
+            As :meth:`process`; all values 0 before any non-speech frame was seen.
+        correlation : ndarray, shape (n_pairs, n_fft), float32
+            The whole noise GCC-PHAT correlation of every pair (lag ``k`` at index ``k mod n_fft``).
+        """
+        peak_tdoa = np.empty((self.n_pairs, self.n_peaks))
+        peak_value = np.empty((self.n_pairs, self.n_peaks))
+        _noise_frame(self._noise, self._cross, self._corr, self.max_lag_samples, self.sample_rate_hz, peak_tdoa,
+                     peak_value)
+        return peak_tdoa, peak_value, self._corr.copy()

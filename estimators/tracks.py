@@ -1,0 +1,543 @@
+"""Several sources at once: a bank of relative-TOA tracks with data association, birth, death and labels.
+
+The TOA paper tracks one source with one Kalman filter (:class:`estimators.KalmanToa`). In a room with a
+persistent noise source, or with several talkers taking turns, that one filter follows whatever is loudest:
+in a speech pause it re-initialises on the noise. :class:`SourceTracker` keeps a small bank of tracks instead,
+each a :class:`~estimators.KalmanToa` (Wiener-velocity model, clutter gate of eq. 17), fed per frame with the
+N best GCC-PHAT peaks of every pair (:class:`estimators.multipeak.NoiseAwareGcc`):
+
+- **Association** (speech frames only): each track, most active first, takes per pair the unused peak
+  nearest its predicted TDOA ``H0 (toa + dt rate)`` within a gate of three predicted standard deviations
+  (at least ``gate_min_s``, at most ``gate_max_s``); the track updates with the pairs it took (the others
+  are left out, confidence 0). A *hit* is an update that used at least ``min_pair_fraction`` of the usable
+  pairs and was not gated as clutter.
+- **Birth** (speech frames only): from the peaks no track took, the highest of every pair, a robust
+  least-squares TOA fit (eq. 12; pairs off by more than ``birth_max_residual_s`` dropped, then refitted)
+  whose kept pairs are self-consistent, cover at least ``min_pair_fraction`` of the usable pairs and
+  connect every usable device, starts a *tentative* track. It is *confirmed* after ``confirm_hits`` hits
+  within ``confirm_window_s`` and deleted otherwise.
+- **Noise sources**: every ``noise_every_s`` the PHAT-weighted noise cross-power spectra (tracked on
+  non-speech frames by :class:`~estimators.multipeak.NoiseAwareGcc`) give the delays of the persistent noise
+  sources; each consistent fit updates (or starts) a track labelled ``"noise"``.
+- **Labels**: a track is ``"speech"`` when it was born and confirmed on speech frames; it becomes ``"noise"``
+  when its activity does not follow speech presence: on non-speech frames (plain PHAT peaks) every track is
+  checked, without an update, for its peaks (from 0.3 s after the last speech frame on, past a talker's
+  reverberant tail); when they are there in more than ``noise_quiet_activity`` of
+  the non-speech frames and more often than the track has hits on speech frames (both exponential averages
+  over 1 s), the source keeps sounding when nobody speaks.
+  Noise tracks are never steered at.
+- **Death**: a speech track without a hit for ``forget_after_s``, or a noise track not seen in the noise
+  spectra for ``forget_after_s``; when the bank is full the least recently hit track that is not steered goes.
+  Two tracks of the same kind closer than ``same_source_s`` are merged (the younger goes).
+- **Steering** (``target``): ``"active-talker"`` steers at the speech track with the highest activity (an
+  exponential average over speech frames, time constant ``activity_time_constant_s``, of the matched peak
+  heights of its hits) and switches when another's activity exceeds the steered one's by ``switch_ratio``;
+  ``"nearest"`` steers at the speech track heard earliest by device ``target_device`` relative to the mean
+  of all devices (clock offsets cancel between tracks), among tracks with a hit in the last
+  ``forget_after_s``. With no confirmed speech track nothing is steered (the caller outputs the reference
+  device).
+
+On non-speech frames every track only predicts: no update and no birth comes from a frame without speech.
+Units: seconds throughout; TOA vectors relative to device 0 (``toa[0] = 0``), as :mod:`estimators.conventions`.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+
+from .conventions import pair_matrix, pairs
+from .toa import KalmanToa
+
+__all__ = ["SourceTracker", "Track", "TrackKind", "TargetPolicy"]
+
+TrackKind = Literal["tentative", "speech", "noise"]
+TargetPolicy = Literal["active-talker", "nearest"]
+
+
+@dataclass
+class Track:
+    """One tracked source: its filter, label and running statistics (times in stream seconds)."""
+
+    track_id: int
+    kalman: KalmanToa
+    kind: TrackKind
+    born_s: float
+    last_hit_s: float
+    n_hits: int = 0
+    confirmed_s: float | None = None
+    activity: float = 0.0            # EMA over speech frames of the matched peak height of hits
+    quiet_activity: float = 0.0      # EMA over non-speech frames of "its peaks are there" (0 or 1)
+    speech_rate: float = 0.0         # EMA over speech frames of "it had a hit" (0 or 1)
+    active_s: float = 0.0            # seconds of frames with a hit
+    steered_s: float = 0.0           # seconds steered at
+    toa_sum_s: np.ndarray | None = None   # running sums for the TOA summary (hits only)
+    toa_sq_sum_s2: np.ndarray | None = None
+    hit_times_s: list = field(default_factory=list)   # recent hits of a tentative track
+    died_s: float | None = None
+    death_reason: str = ""
+
+    @property
+    def toa_s(self) -> np.ndarray:
+        """Current relative TOA, shape (n_devices,), seconds (``toa[0] = 0``)."""
+        m = self.kalman.n_mics - 1
+        out = np.zeros(m + 1)
+        out[1:] = self.kalman._kf.x[:m]
+        return out
+
+    def summary(self) -> dict:
+        n = max(self.n_hits, 1)
+        mean = (self.toa_sum_s / n) if self.toa_sum_s is not None else self.toa_s
+        std = (np.sqrt(np.maximum(self.toa_sq_sum_s2 / n - mean ** 2, 0.0)) if self.toa_sq_sum_s2 is not None
+               else np.zeros_like(mean))
+        return {"id": self.track_id, "kind": self.kind, "born_s": round(self.born_s, 3),
+                "confirmed_s": None if self.confirmed_s is None else round(self.confirmed_s, 3),
+                "died_s": None if self.died_s is None else round(self.died_s, 3), "death_reason": self.death_reason,
+                "n_hits": self.n_hits, "active_s": round(self.active_s, 3), "steered_s": round(self.steered_s, 3),
+                "mean_toa_s": [float(v) for v in mean], "std_toa_s": [float(v) for v in std],
+                "last_toa_s": [float(v) for v in self.toa_s]}
+
+
+class SourceTracker:
+    """A bank of relative-TOA tracks fed with the N best GCC peaks per pair (module doc).
+
+    Parameters
+    ----------
+    n_devices : int
+        Number of devices ``M >= 2``.
+    frame_period_s : float
+        Time between frames (the hop), seconds.
+    sample_rate_hz : float
+        Working rate, Hz (sets the gates' floors in samples).
+    accel_std_s_per_s2, tdoa_std_s, gate_probability : float
+        Each track's :class:`~estimators.KalmanToa` parameters.
+    target : {"active-talker", "nearest"}
+        Steering policy; ``"nearest"`` needs ``target_device``.
+    target_device : int, optional
+        Device index for ``target="nearest"``.
+    max_tracks : int
+        Tracks kept at once (speech, tentative and noise).
+    speech_threshold : float
+        A frame with speech presence at least this is a speech frame.
+    """
+
+    def __init__(self, n_devices: int, *, frame_period_s: float, sample_rate_hz: float,
+                 accel_std_s_per_s2: float = 1e-3, tdoa_std_s: float = 1e-4, gate_probability: float = 0.99,
+                 target: TargetPolicy = "active-talker", target_device: int | None = None, max_tracks: int = 8,
+                 speech_threshold: float = 0.5, min_peak_value: float = 0.15, min_pair_fraction: float = 0.4,
+                 gate_min_s: float | None = None, gate_max_s: float = 5e-4, birth_max_residual_s: float | None = None,
+                 confirm_hits: int = 4, confirm_window_s: float = 0.3, forget_after_s: float = 30.0,
+                 activity_time_constant_s: float = 0.4, switch_ratio: float = 1.5, same_source_s: float = 2e-4,
+                 noise_every_s: float = 0.25, noise_quiet_activity: float = 0.3) -> None:
+        if int(n_devices) != n_devices or n_devices < 2:
+            raise ValueError(f"{n_devices=} must be an integer >= 2")
+        if target not in ("active-talker", "nearest"):
+            raise ValueError(f"{target=} must be 'active-talker' or 'nearest'")
+        if target == "nearest" and (target_device is None or not 0 <= int(target_device) < n_devices):
+            raise ValueError(f"{target_device=} must be a device index in 0..{n_devices - 1} for target='nearest'")
+        for name, value in (("frame_period_s", frame_period_s), ("sample_rate_hz", sample_rate_hz)):
+            if not (np.isfinite(value) and value > 0):
+                raise ValueError(f"{name}={value!r} must be finite and > 0")
+        if int(max_tracks) != max_tracks or max_tracks < 1:
+            raise ValueError(f"{max_tracks=} must be an integer >= 1")
+        self.n_devices = int(n_devices)
+        self.n_pairs = self.n_devices * (self.n_devices - 1) // 2
+        self.frame_period_s = float(frame_period_s)
+        self.sample_rate_hz = float(sample_rate_hz)
+        self.target = target
+        self.target_device = None if target_device is None else int(target_device)
+        self.max_tracks = int(max_tracks)
+        self.speech_threshold = float(speech_threshold)
+        self.min_peak_value = float(min_peak_value)
+        self.min_pair_fraction = float(min_pair_fraction)
+        self.gate_min_s = float(gate_min_s) if gate_min_s is not None else 2.5 / self.sample_rate_hz
+        self.gate_max_s = float(gate_max_s)
+        self.birth_max_residual_s = (float(birth_max_residual_s) if birth_max_residual_s is not None
+                                     else 1.5 / self.sample_rate_hz)
+        self.confirm_hits = int(confirm_hits)
+        self.confirm_window_s = float(confirm_window_s)
+        self.forget_after_s = float(forget_after_s)
+        self.activity_beta = 1.0 - math.exp(-self.frame_period_s / float(activity_time_constant_s))
+        self.switch_ratio = float(switch_ratio)
+        self.same_source_s = float(same_source_s)
+        self.noise_every_frames = max(1, int(round(noise_every_s / self.frame_period_s)))
+        self.quiet_beta = 1.0 - math.exp(-self.frame_period_s / 1.0)   # 1 s average over non-speech frames
+        self.quiet_skip_frames = max(1, int(round(0.3 / self.frame_period_s)))  # 0.3 s after speech: its tail
+        self.noise_quiet_activity = float(noise_quiet_activity)
+        self._kalman_kwargs = dict(frame_period_s=self.frame_period_s, accel_std_s_per_s2=accel_std_s_per_s2,
+                                   tdoa_std_s=tdoa_std_s, gate_probability=gate_probability,
+                                   reinit_after_n_gated=None, min_confidence=0.0)
+        self._tdoa_std_s = float(tdoa_std_s)
+        self._pairs = pairs(self.n_devices)
+        self._H = pair_matrix(self.n_devices)
+        self._H0 = self._H[:, 1:]
+        self._rows = np.arange(self.n_pairs)
+        self.reset()
+
+    # -- state ---------------------------------------------------------------------------------------
+    def reset(self) -> None:
+        """Forget every track, the steering and the counters."""
+        self.tracks: list[Track] = []
+        self.ended: list[Track] = []
+        self.steered: Track | None = None
+        self.switches: list[dict] = []
+        self.n_frames = 0
+        self.n_speech_frames = 0
+        self.n_births = 0
+        self._quiet_frames = 0
+        self._next_id = 0
+        self.gated = False
+        self.steered_toa_s = np.zeros(self.n_devices)
+
+    @property
+    def initialised(self) -> bool:
+        """Whether any track exists (the estimator protocol of :class:`~estimators.KalmanToa`)."""
+        return bool(self.tracks)
+
+    @property
+    def latency_s(self) -> float:
+        """Extra output latency in seconds (0: causal filters)."""
+        return 0.0
+
+    def shift(self, delta_toa_s: np.ndarray, *, delta_rate_s_per_s: np.ndarray | None = None) -> None:
+        """Move every track by a known TOA (and rate) change, as :meth:`KalmanToa.shift` (a re-aligned
+        device or a corrected clock rate must not look like clutter)."""
+        for t in self.tracks:
+            if t.kalman.initialised:
+                t.kalman.shift(delta_toa_s, delta_rate_s_per_s=delta_rate_s_per_s)
+
+    @property
+    def steered_id(self) -> int:
+        """Id of the steered track, -1 when none (the output is then the reference device)."""
+        return -1 if self.steered is None else self.steered.track_id
+
+    def report(self) -> dict:
+        """Tracks (alive and ended), switches and counters, for ``report.json``."""
+        return {"target": self.target if self.target != "nearest" else f"nearest {self.target_device}",
+                "n_frames": self.n_frames, "n_speech_frames": self.n_speech_frames, "n_births": self.n_births,
+                "speech_s": round(self.n_speech_frames * self.frame_period_s, 3),
+                "tracks": [t.summary() for t in sorted(self.ended + self.tracks, key=lambda t: t.track_id)
+                           if t.kind != "tentative" or t.n_hits >= self.confirm_hits],
+                "switches": self.switches}
+
+    # -- per frame -----------------------------------------------------------------------------------
+    def update(self, peak_tdoa_s: np.ndarray, peak_value: np.ndarray, *, speech_probability: float,
+               usable: np.ndarray, time_s: float, noise_peaks=None) -> np.ndarray:
+        """One frame: associate, update, give birth, label, forget, steer.
+
+        Parameters
+        ----------
+        peak_tdoa_s, peak_value : ndarray, shape (n_pairs, n_peaks), float64
+            The N best GCC peaks of every pair (:meth:`NoiseAwareGcc.process`).
+        speech_probability : float
+            The frame's speech presence in ``[0, 1]``.
+        usable : ndarray, shape (n_devices,), bool
+            Devices usable in this frame.
+        time_s : float
+            Stream time of the frame (seconds), for the report.
+        noise_peaks : callable, optional
+            Returns ``(peak_tdoa_s, peak_value)`` of the noise cross-power spectra; called every
+            ``noise_every_s``.
+
+        Returns
+        -------
+        ndarray, shape (n_devices,), float64
+            The steered relative TOA (seconds; ``toa[0] = 0``), zeros when nothing is steered.
+        """
+        self.n_frames += 1
+        self._time_s = time_s
+        speech = bool(speech_probability >= self.speech_threshold)
+        pair_ok = usable[self._pairs[:, 0]] & usable[self._pairs[:, 1]]
+        n_ok = int(pair_ok.sum())
+        hit_any = False
+        self.gated = False
+        if speech and n_ok:
+            self.n_speech_frames += 1
+            hit_any = self._associate(peak_tdoa_s, peak_value, pair_ok, n_ok, time_s)
+            if not hit_any or self.n_speech_frames % 4 == 0:
+                self._birth(peak_tdoa_s, peak_value, pair_ok, n_ok, usable, time_s)
+            self._quiet_frames = 0
+        else:
+            for t in self.tracks:
+                t.kalman.predict()
+            self._quiet_frames += 1
+            if n_ok and self._quiet_frames >= self.quiet_skip_frames:   # past the talker's reverberant tail
+                self._quiet_check(peak_tdoa_s, peak_value, pair_ok, n_ok)
+        if noise_peaks is not None and self.n_frames % self.noise_every_frames == 0:
+            self._noise_update(*noise_peaks(), pair_ok, n_ok, usable, time_s)
+        self._housekeeping(time_s)
+        self._steer(time_s, speech)
+        if self.steered is not None:
+            self.steered.steered_s += self.frame_period_s
+            self.steered_toa_s = self.steered.toa_s
+        else:
+            self.steered_toa_s = np.zeros(self.n_devices)
+        return self.steered_toa_s
+
+    def _predicted(self, t: Track) -> tuple[np.ndarray, np.ndarray]:
+        """Predicted pair TDOAs (n_pairs,) and their gate half-widths (n_pairs,), seconds."""
+        kf = t.kalman._kf
+        m = self.n_devices - 1
+        x = kf.x
+        toa = x[:m] + self.frame_period_s * x[m:]
+        P = kf.P[:m, :m]
+        var = np.einsum("ij,jk,ik->i", self._H0, P, self._H0)
+        gate = np.clip(3.0 * np.sqrt(np.maximum(var, 0.0)), self.gate_min_s, self.gate_max_s)
+        return self._H0 @ toa, gate
+
+    def _associate(self, peak_tdoa, peak_value, pair_ok, n_ok, time_s) -> bool:
+        used = np.zeros(peak_value.shape, bool)
+        order = sorted(self.tracks, key=lambda t: (t is not self.steered, t.kind == "tentative", -t.activity))
+        hit_any = False
+        min_pairs = max(2, int(math.ceil(self.min_pair_fraction * n_ok)))
+        for t in order:
+            pred, gate = self._predicted(t)
+            dist = np.abs(peak_tdoa - pred[:, None])
+            ok = (dist <= gate[:, None]) & (peak_value >= self.min_peak_value) & ~used & pair_ok[:, None]
+            dist = np.where(ok, dist, np.inf)
+            k = np.argmin(dist, axis=1)
+            took = np.isfinite(dist[self._rows, k])
+            tdoa = peak_tdoa[self._rows, k]
+            if took.sum() >= min_pairs:
+                took = self._consistent(tdoa, took)   # peaks in the gate must also agree with each other
+            n_took = int(took.sum())
+            hit = False
+            if n_took >= min_pairs:
+                conf = np.where(took, peak_value[self._rows, k], 0.0)
+                t.kalman.update(tdoa, conf)
+                if not t.kalman.gated:
+                    hit = True
+                    used[self._rows[took], k[took]] = True
+                    value = float(conf[took].mean())
+                    self._record_hit(t, time_s, value)
+                elif t is self.steered:
+                    self.gated = True
+            else:
+                t.kalman.predict()
+            if t.kind == "speech":
+                t.activity += self.activity_beta * ((float(conf[took].mean()) if hit else 0.0) - t.activity)
+            if t.kind != "tentative":
+                t.speech_rate += self.quiet_beta * (float(hit) - t.speech_rate)
+                self._relabel(t)
+            hit_any |= hit and t.kind != "noise"
+        self._used = used
+        return hit_any
+
+    def _quiet_check(self, peak_tdoa, peak_value, pair_ok, n_ok) -> None:
+        """Non-speech frame (peaks of the plain PHAT): which tracks' peaks are still there? A source that
+        keeps sounding when nobody speaks is a noise source (label ``"noise"``); a talker is silent then."""
+        min_pairs = max(2, int(math.ceil(self.min_pair_fraction * n_ok)))
+        for t in self.tracks:
+            if t.kind == "tentative":
+                continue
+            pred, gate = self._predicted(t)
+            ok = (np.abs(peak_tdoa - pred[:, None]) <= gate[:, None]) & (peak_value >= self.min_peak_value)
+            there = float(int((ok.any(axis=1) & pair_ok).sum()) >= min_pairs)
+            t.quiet_activity += self.quiet_beta * (there - t.quiet_activity)
+            if t.kind == "noise" and there:
+                t.last_hit_s = self._time_s
+            self._relabel(t)
+
+    def _relabel(self, t: Track) -> None:
+        """Speech or noise, by how the track's activity follows speech presence (module doc). A noise track
+        found in the noise spectra that has hits on speech frames and is quiet in the pauses (a talker's
+        onset leaked into the noise average before the detector caught it) becomes a talker."""
+        if t.kind == "speech" and t.quiet_activity > max(self.noise_quiet_activity, t.speech_rate):
+            t.kind = "noise"
+            t.activity = 0.0
+        elif t.kind == "noise" and t.speech_rate > max(self.noise_quiet_activity, t.quiet_activity) + 0.1:
+            t.kind = "speech"
+
+    def _record_hit(self, t: Track, time_s: float, value: float) -> None:
+        t.n_hits += 1
+        t.last_hit_s = time_s
+        t.active_s += self.frame_period_s
+        toa = t.toa_s
+        if t.toa_sum_s is None:
+            t.toa_sum_s, t.toa_sq_sum_s2 = toa.copy(), toa ** 2
+        else:
+            t.toa_sum_s += toa
+            t.toa_sq_sum_s2 += toa ** 2
+        if t.kind == "tentative":
+            t.hit_times_s.append(time_s)
+            if len(t.hit_times_s) >= self.confirm_hits:
+                t.kind = "speech"
+                t.confirmed_s = time_s
+                t.activity = value
+                t.speech_rate = 1.0
+                t.hit_times_s = []
+
+    def _consistent(self, tdoa: np.ndarray, ok: np.ndarray) -> np.ndarray:
+        """The pairs of ``ok`` whose TDOAs agree with one TOA vector (eq. 12 fit, one refit without the
+        pairs off by more than ``birth_max_residual_s``)."""
+        keep = ok
+        for _ in range(2):
+            if keep.sum() < self.n_devices - 1:
+                return keep
+            sol, *_ = np.linalg.lstsq(self._H0[keep], tdoa[keep], rcond=None)
+            keep = ok & (np.abs(self._H0 @ sol - tdoa) <= self.birth_max_residual_s)
+        return keep
+
+    def _fit(self, tdoa, ok, usable, *, max_residual_s: float | None = None) -> tuple[np.ndarray, np.ndarray] | None:
+        """Robust eq. (12) fit of the pairs ``ok``: returns (toa (M,), kept pairs) or None when the kept
+        pairs are too few, inconsistent (residual above ``max_residual_s``, default ``birth_max_residual_s``)
+        or leave a usable device unconnected."""
+        max_residual_s = self.birth_max_residual_s if max_residual_s is None else max_residual_s
+        keep = ok.copy()
+        for _ in range(2):
+            if keep.sum() < self.n_devices - 1:
+                return None
+            H0 = self._H0[keep]
+            sol, *_ = np.linalg.lstsq(H0, tdoa[keep], rcond=None)
+            resid = np.abs(self._H0 @ sol - tdoa)
+            keep = ok & (resid <= max_residual_s)
+        n_ok = int(ok.sum())
+        if keep.sum() < max(self.n_devices - 1, math.ceil(self.min_pair_fraction * n_ok)):
+            return None
+        covered = np.zeros(self.n_devices, bool)
+        covered[self._pairs[keep, 0]] = True
+        covered[self._pairs[keep, 1]] = True
+        if not covered[usable].all():
+            return None
+        H0 = self._H0[keep]
+        sol, *_ = np.linalg.lstsq(H0, tdoa[keep], rcond=None)
+        if np.sqrt(np.mean((H0 @ sol - tdoa[keep]) ** 2)) > 0.5 * max_residual_s:
+            return None
+        return np.concatenate([[0.0], sol]), keep
+
+    def _birth(self, peak_tdoa, peak_value, pair_ok, n_ok, usable, time_s) -> None:
+        free = np.where(self._used | (peak_value < self.min_peak_value), -np.inf, peak_value)
+        k = np.argmax(free, axis=1)
+        ok = pair_ok & np.isfinite(free[self._rows, k])
+        if ok.sum() < self.n_devices - 1:
+            return
+        tdoa = peak_tdoa[self._rows, k]
+        fit = self._fit(tdoa, ok, usable)
+        if fit is None:
+            return
+        toa, keep = fit
+        if any(self._distance(toa, t.toa_s) < self.same_source_s for t in self.tracks):
+            return
+        t = self._new_track("tentative", time_s)
+        t.kalman.update(np.where(keep, tdoa, 0.0), keep.astype(float))
+        if not t.kalman.initialised:
+            self.tracks.remove(t)
+            return
+        self._record_hit(t, time_s, float(peak_value[self._rows, k][keep].mean()))
+
+    def _new_track(self, kind: TrackKind, time_s: float) -> Track:
+        if len(self.tracks) >= self.max_tracks:
+            victims = [t for t in self.tracks if t is not self.steered]
+            if not victims:
+                raise RuntimeError("max_tracks must leave room beside the steered track")
+            victim = min(victims, key=lambda t: (t.kind != "tentative", t.last_hit_s))
+            self._end(victim, time_s, "bank full")
+        kalman = KalmanToa(self.n_devices, initial_toa_std_s=0.05, **self._kalman_kwargs)
+        t = Track(self._next_id, kalman, kind, born_s=time_s, last_hit_s=time_s)
+        self._next_id += 1
+        self.n_births += 1
+        self.tracks.append(t)
+        return t
+
+    def _end(self, t: Track, time_s: float, reason: str) -> None:
+        t.died_s = time_s
+        t.death_reason = reason
+        self.tracks.remove(t)
+        if t.kind != "tentative":
+            self.ended.append(t)
+        if t is self.steered:
+            self.steered = None
+
+    def _noise_update(self, peak_tdoa, peak_value, correlation, pair_ok, n_ok, usable, time_s) -> None:
+        """Noise sources from the PHAT of the noise cross-power spectra (best and second-best peaks): the
+        averaged spectra of a reverberant noise give lower, wider peaks than one speech frame, so the fit
+        allows twice the birth residual."""
+        for rank in range(min(2, peak_tdoa.shape[1])):
+            ok = pair_ok & (peak_value[:, rank] >= self.min_peak_value)
+            if ok.sum() < self.n_devices - 1:
+                continue
+            fit = self._fit(peak_tdoa[:, rank], ok, usable, max_residual_s=2 * self.birth_max_residual_s)
+            if fit is None:
+                continue
+            toa, keep = fit
+            nearest = min((t for t in self.tracks if t.kind == "noise"),
+                          key=lambda t: self._distance(toa, t.toa_s), default=None)
+            if nearest is not None and self._distance(toa, nearest.toa_s) < 3 * self.same_source_s:
+                t = nearest
+                # a direct correction: noise tracks are refreshed a few times per second
+                t.kalman._kf.x[:self.n_devices - 1] = toa[1:]
+                t.kalman._kf.x[self.n_devices - 1:] = 0.0
+            else:
+                if rank > 0 or any(self._distance(toa, s.toa_s) < 3 * self.same_source_s for s in self.tracks
+                                   if s.kind == "speech"):
+                    continue   # second peaks only refresh known sources; a talker's leak is no noise source
+                t = self._new_track("noise", time_s)
+                t.kalman.update(np.where(keep, peak_tdoa[:, rank], 0.0), keep.astype(float))
+                t.confirmed_s = time_s
+                t.quiet_activity = self.noise_quiet_activity + 0.1   # evidence that decays in the pauses
+            t.n_hits += 1
+            t.last_hit_s = time_s
+            t.active_s += self.noise_every_frames * self.frame_period_s
+
+    @staticmethod
+    def _distance(a: np.ndarray, b: np.ndarray) -> float:
+        """RMS over devices of the difference of two relative TOA vectors, seconds."""
+        return float(np.sqrt(np.mean((a - b) ** 2)))
+
+    def _housekeeping(self, time_s: float) -> None:
+        for t in list(self.tracks):
+            if t.kind == "tentative":
+                if t.hit_times_s and time_s - t.hit_times_s[0] > self.confirm_window_s:
+                    self._end(t, time_s, "not confirmed")
+            elif time_s - t.last_hit_s > self.forget_after_s:
+                self._end(t, time_s, f"no hit for {self.forget_after_s:g} s")
+        # merge duplicates of the same kind (the younger goes)
+        confirmed = [t for t in self.tracks if t.kind != "tentative"]
+        for a_i, a in enumerate(confirmed):
+            for b in confirmed[a_i + 1:]:
+                if a.kind == b.kind and b in self.tracks and a in self.tracks and \
+                        self._distance(a.toa_s, b.toa_s) < self.same_source_s:
+                    young = b if b.born_s >= a.born_s else a
+                    if young is self.steered:
+                        young = a if young is b else b
+                    self._end(young, time_s, f"merged into track {(a if young is b else b).track_id}")
+
+    def _steer(self, time_s: float, speech: bool) -> None:
+        talkers = [t for t in self.tracks if t.kind == "speech"]
+        current = self.steered if self.steered in talkers else None
+        if current is None and self.steered is not None:
+            reason = f"track {self.steered.track_id} is now labelled {self.steered.kind}"
+            self.steered = None
+        else:
+            reason = ""
+        if not talkers:
+            if reason:
+                self.switches.append({"time_s": round(time_s, 3), "from": self._last_id, "to": -1, "reason": reason})
+            return
+        if self.target == "nearest":
+            recent = [t for t in talkers if time_s - t.last_hit_s <= self.forget_after_s]
+            d = self.target_device
+            best = min(recent or talkers, key=lambda t: t.toa_s[d] - t.toa_s.mean())
+            if best is not current:
+                why = (f"track {best.track_id} is heard earliest at device {d}" if current is not None
+                       else f"first talker track {best.track_id}")
+                self._switch(current, best, time_s, reason or why)
+            return
+        best = max(talkers, key=lambda t: t.activity)
+        if current is None:
+            if best.activity > 0:
+                self._switch(None, best, time_s, reason or f"first talker track {best.track_id}")
+        elif best is not current and speech and best.activity > self.switch_ratio * current.activity:
+            self._switch(current, best, time_s,
+                         f"track {best.track_id} more active ({best.activity:.2f} vs {current.activity:.2f})")
+
+    @property
+    def _last_id(self) -> int:
+        return self.switches[-1]["to"] if self.switches else -1
+
+    def _switch(self, old: Track | None, new: Track, time_s: float, reason: str) -> None:
+        self.switches.append({"time_s": round(time_s, 3), "from": -1 if old is None else old.track_id,
+                              "to": new.track_id, "reason": reason})
+        self.steered = new

@@ -1,0 +1,109 @@
+"""Noise-aware GCC-PHAT with the N best peaks (estimators.multipeak): synthetic truth, known delays."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import beamform
+from estimators import NoiseAwareGcc, pairs
+
+FS = 16000
+N_FFT = 1024
+HOP = 256
+
+
+def _two_sources(seed: int, *, n_devices: int = 5, seconds: float = 5.0, noise_gain: float = 1.0,
+                 talker_gain: float = 0.5):
+    """A continuous white 'noise' source and an intermittent 'talker' (on/off every 0.1 s), each reaching
+    device ``i`` with an integer delay; returns the signals, the per-hop talker activity and both delay sets."""
+    rng = np.random.default_rng(seed)
+    n = int(seconds * FS)
+    pad = 100
+    noise = rng.standard_normal(n + 2 * pad)
+    talker = rng.standard_normal(n + 2 * pad) * np.repeat(rng.random(n // 1600 + 2) > 0.5, 1600)[:n + 2 * pad]
+    d_noise = rng.integers(-20, 21, n_devices)
+    d_talk = rng.integers(-20, 21, n_devices)
+    d_noise[0] = d_talk[0] = 0
+    x = np.stack([noise_gain * noise[pad - dn:pad - dn + n] + talker_gain * talker[pad - dt:pad - dt + n]
+                  for dn, dt in zip(d_noise, d_talk)], axis=1).astype(np.float32)
+    x += 1e-3 * rng.standard_normal(x.shape).astype(np.float32)
+    active = np.array([np.any(talker[pad + k * HOP:pad + (k + 1) * HOP] != 0) for k in range(n // HOP)])
+    return x, active, d_noise, d_talk
+
+
+def _run(x, active, weighting):
+    m = x.shape[1]
+    stft = beamform.StreamingStft(m, frame_samples=N_FFT, hop_samples=HOP)
+    gcc = NoiseAwareGcc(m, n_fft=N_FFT, sample_rate_hz=FS, hop_s=HOP / FS, max_tdoa_s=0.004, weighting=weighting)
+    out = []
+    for k in range(len(active)):
+        spectra = stft.process(x[k * HOP:(k + 1) * HOP])
+        out.append(gcc.process(spectra, speech_probability=float(active[k])))
+    return gcc, out
+
+
+def _toa_to_tdoa_samples(d):
+    p = pairs(len(d))
+    return d[p[:, 0]] - d[p[:, 1]]
+
+
+def test_plain_phat_follows_the_louder_noise_and_subtraction_finds_the_talker():
+    x, active, d_noise, d_talk = _two_sources(1)
+    y_noise, y_talk = _toa_to_tdoa_samples(d_noise), _toa_to_tdoa_samples(d_talk)
+    frames = [k for k in range(40, len(active)) if active[k] and active[k - 4:k + 1].all()]
+    for weighting, expect in (("phat", "noise"), ("subtract", "talker")):
+        _, out = _run(x, active, weighting)
+        top = np.array([out[k][0][:, 0] * FS for k in frames])
+        near_talk = np.mean(np.abs(top - y_talk) < 0.6)
+        near_noise = np.mean(np.abs(top - y_noise) < 0.6)
+        if expect == "noise":
+            assert near_noise > 0.9 and near_talk < 0.05, (near_noise, near_talk)
+        else:
+            assert near_talk > 0.6 and near_noise < 0.35, (near_noise, near_talk)
+
+
+def test_both_sources_are_among_the_best_peaks_and_the_noise_spectra_give_the_noise():
+    x, active, d_noise, d_talk = _two_sources(2, noise_gain=0.7, talker_gain=0.7)
+    y_noise, y_talk = _toa_to_tdoa_samples(d_noise), _toa_to_tdoa_samples(d_talk)
+    gcc, out = _run(x, active, "phat")
+    frames = [k for k in range(20, len(active)) if active[k] and active[k - 4:k + 1].all()]
+    found_t = np.mean([np.any(np.abs(out[k][0] * FS - y_talk[:, None]) < 0.6, axis=1).mean() for k in frames])
+    found_n = np.mean([np.any(np.abs(out[k][0] * FS - y_noise[:, None]) < 0.6, axis=1).mean() for k in frames])
+    assert found_t > 0.8 and found_n > 0.8
+    tdoa, value, corr = gcc.noise_peaks()
+    assert np.all(np.abs(tdoa[:, 0] * FS - y_noise) < 0.6)
+    assert corr.shape == (gcc.n_pairs, N_FFT) and np.all(value[:, 0] > 0.3)
+    # peaks come highest first
+    assert np.all(np.diff(out[-1][1], axis=1) <= 0)
+
+
+def test_swapping_channels_negates_the_delays_and_invalid_channels_give_nothing():
+    x, active, _, _ = _two_sources(3, n_devices=3)
+    stft = beamform.StreamingStft(3, frame_samples=N_FFT, hop_samples=HOP)
+    stft2 = beamform.StreamingStft(3, frame_samples=N_FFT, hop_samples=HOP)
+    a = NoiseAwareGcc(3, n_fft=N_FFT, sample_rate_hz=FS, hop_s=HOP / FS, max_tdoa_s=0.004, weighting="phat")
+    b = NoiseAwareGcc(3, n_fft=N_FFT, sample_rate_hz=FS, hop_s=HOP / FS, max_tdoa_s=0.004, weighting="phat")
+    for k in range(8):
+        ta, va = a.process(stft.process(x[k * HOP:(k + 1) * HOP]), speech_probability=1.0)
+        tb, vb = b.process(stft2.process(x[k * HOP:(k + 1) * HOP, ::-1].copy()), speech_probability=1.0)
+    # reversed channel order [2, 1, 0]: new (0,1) = old (2,1), new (0,2) = old (2,0), new (1,2) = old (1,0)
+    np.testing.assert_allclose(tb[:, 0], -ta[::-1, 0], atol=0.05 / FS)
+    spectra = stft.process(x[:HOP])
+    t, v = a.process(spectra, speech_probability=1.0, valid=np.array([True, False, True]))
+    p = pairs(3)
+    has1 = (p == 1).any(axis=1)
+    assert np.all(v[has1] == 0) and np.all(v[~has1, 0] > 0)
+    t, v = a.process(np.where(np.arange(3) == 2, np.nan, spectra), speech_probability=1.0)
+    assert np.all(v[(p == 2).any(axis=1)] == 0)
+
+
+def test_bad_arguments_raise_at_construction():
+    with pytest.raises(ValueError, match="n_channels"):
+        NoiseAwareGcc(1, n_fft=512, sample_rate_hz=FS, hop_s=0.01, max_tdoa_s=0.01)
+    with pytest.raises(ValueError, match="weighting"):
+        NoiseAwareGcc(2, n_fft=512, sample_rate_hz=FS, hop_s=0.01, max_tdoa_s=0.01, weighting="ml")
+    with pytest.raises(ValueError, match="n_peaks"):
+        NoiseAwareGcc(2, n_fft=512, sample_rate_hz=FS, hop_s=0.01, max_tdoa_s=0.01, n_peaks=0)
+    gcc = NoiseAwareGcc(2, n_fft=512, sample_rate_hz=FS, hop_s=0.01, max_tdoa_s=0.01)
+    with pytest.raises(ValueError, match="spectra.shape"):
+        gcc.process(np.zeros((10, 2), np.complex64), speech_probability=0.0)

@@ -1,0 +1,126 @@
+"""The bank of TOA tracks (estimators.tracks): synthetic peaks of known sources, turn-taking, noise, no speech."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from estimators import SourceTracker, pair_matrix
+
+FS = 16000.0
+DT = 256 / FS
+M = 5
+
+
+def _peaks(sources, rng, *, n_peaks=3, jitter_samples=0.2, n_pairs=M * (M - 1) // 2):
+    """Peaks of one frame: each (toa (M,) s, value) source gives one peak per pair; the rest are clutter."""
+    H = pair_matrix(M)
+    tdoa = rng.uniform(-0.01, 0.01, (n_pairs, n_peaks))
+    value = rng.uniform(0.05, 0.12, (n_pairs, n_peaks))
+    for q, (toa, v) in enumerate(sources):
+        tdoa[:, q] = H @ toa + rng.normal(0, jitter_samples / FS, n_pairs)
+        value[:, q] = v
+    order = np.argsort(-value, axis=1)
+    return np.take_along_axis(tdoa, order, 1), np.take_along_axis(value, order, 1)
+
+
+TALKER_A = np.array([0.0, 3e-3, -2e-3, 1e-3, 4e-3])
+TALKER_B = np.array([0.0, -4e-3, 2.5e-3, -1e-3, 0.5e-3])
+NOISE = np.array([0.0, 1e-3, 5e-3, -3e-3, -2e-3])
+USABLE = np.ones(M, bool)
+
+
+def _tracker(**kw):
+    return SourceTracker(M, frame_period_s=DT, sample_rate_hz=FS, min_peak_value=0.15, **kw)
+
+
+def test_turn_taking_moves_the_beam_within_half_a_second_and_never_to_the_noise():
+    rng = np.random.default_rng(0)
+    tr = _tracker()
+    steered, times = [], []
+    # 1 s noise only (non-speech), then A 3 s, pause 0.5 s, B 3 s, A 2 s; the noise plays throughout
+    schedule = [(1.0, None), (3.0, TALKER_A), (0.5, None), (3.0, TALKER_B), (2.0, TALKER_A)]
+    t = 0.0
+    for dur, talker in schedule:
+        for _ in range(int(dur / DT)):
+            sources = ([(talker, 0.5)] if talker is not None else []) + [(NOISE, 0.3)]
+            tdoa, value = _peaks(sources, rng)
+            toa = tr.update(tdoa, value, speech_probability=1.0 if talker is not None else 0.0, usable=USABLE,
+                            time_s=t)
+            steered.append(toa.copy())
+            times.append((t, talker))
+            t += DT
+    steered = np.array(steered)
+
+    def on(toa, truth):
+        return np.max(np.abs(toa - truth)) < 2.5e-4
+
+    # after each turn change the beam is on the new talker within 0.5 s
+    for start, truth in ((1.0, TALKER_A), (4.5, TALKER_B), (7.5, TALKER_A)):
+        k0 = int(round(start / DT))
+        k = next(k for k in range(k0, len(steered)) if on(steered[k], truth))
+        assert (k - k0) * DT <= 0.5, (start, (k - k0) * DT)
+    assert not any(on(s, NOISE) for s in steered)
+    rep = tr.report()
+    kinds = {t["kind"] for t in rep["tracks"]}
+    assert "speech" in kinds
+    assert len(rep["switches"]) >= 3
+    assert all("reason" in s for s in rep["switches"])
+
+
+def test_no_speech_steers_nothing_and_tracks_only_predict():
+    rng = np.random.default_rng(1)
+    tr = _tracker()
+    for k in range(200):
+        tdoa, value = _peaks([(NOISE, 0.6)], rng)
+        toa = tr.update(tdoa, value, speech_probability=0.0, usable=USABLE, time_s=k * DT)
+        assert tr.steered_id == -1 and np.all(toa == 0)
+    assert tr.n_speech_frames == 0 and not any(t.kind == "speech" for t in tr.tracks)
+
+
+def test_a_pause_does_not_move_the_track_and_the_steered_talker_survives_it():
+    rng = np.random.default_rng(2)
+    tr = _tracker()
+    for k in range(60):
+        tdoa, value = _peaks([(TALKER_A, 0.5)], rng)
+        tr.update(tdoa, value, speech_probability=1.0, usable=USABLE, time_s=k * DT)
+    sid = tr.steered_id
+    before = tr.steered.toa_s.copy()
+    for k in range(60, 160):   # 1.6 s of noise-only frames: predict only, no birth
+        tdoa, value = _peaks([(NOISE, 0.7)], rng)
+        toa = tr.update(tdoa, value, speech_probability=0.0, usable=USABLE, time_s=k * DT)
+    assert tr.steered_id == sid
+    assert np.max(np.abs(toa - before)) < 1e-4
+    assert not any(np.max(np.abs(t.toa_s - NOISE)) < 2.5e-4 for t in tr.tracks)
+
+
+def test_nearest_policy_picks_the_talker_heard_first_at_the_device():
+    rng = np.random.default_rng(3)
+    # device 2 hears A 2 ms before the array mean and B 3.6 ms after it
+    tr = _tracker(target="nearest", target_device=2)
+    for k in range(100):
+        src = [(TALKER_A, 0.5)] if (k // 25) % 2 == 0 else [(TALKER_B, 0.5)]
+        tdoa, value = _peaks(src, rng)
+        toa = tr.update(tdoa, value, speech_probability=1.0, usable=USABLE, time_s=k * DT)
+    assert np.max(np.abs(toa - TALKER_A)) < 2.5e-4
+    assert TALKER_A[2] - TALKER_A.mean() < TALKER_B[2] - TALKER_B.mean()
+
+
+def test_shift_moves_every_track_by_the_known_change():
+    rng = np.random.default_rng(4)
+    tr = _tracker()
+    for k in range(40):
+        tdoa, value = _peaks([(TALKER_A, 0.5)], rng)
+        tr.update(tdoa, value, speech_probability=1.0, usable=USABLE, time_s=k * DT)
+    before = tr.steered.toa_s.copy()
+    delta = np.array([0.0, 1e-3, 0.0, -2e-3, 0.0])
+    tr.shift(delta)
+    np.testing.assert_allclose(tr.steered.toa_s, before + delta, atol=1e-12)
+
+
+def test_bad_arguments_raise():
+    with pytest.raises(ValueError, match="target_device"):
+        SourceTracker(3, frame_period_s=0.01, sample_rate_hz=FS, target="nearest")
+    with pytest.raises(ValueError, match="target"):
+        SourceTracker(3, frame_period_s=0.01, sample_rate_hz=FS, target="loudest")
+    with pytest.raises(ValueError, match="n_devices"):
+        SourceTracker(1, frame_period_s=0.01, sample_rate_hz=FS)
