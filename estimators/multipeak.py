@@ -284,6 +284,12 @@ class NoiseAwareGcc:
         return self._noise.copy()
 
     @property
+    def noise_mature(self) -> bool:
+        """Whether the noise average holds at least ``0.7 noise_time_constant_s`` worth of non-speech frames
+        (before that it is mostly the first frames of whatever sounded, a talker's onset included)."""
+        return self.n_noise_frames >= 0.5 / self._params[_P_ALPHA]
+
+    @property
     def usable(self) -> np.ndarray:
         """Channels usable in the last frame (valid, finite, not silent), shape (n_channels,), bool."""
         return self._usable.copy()

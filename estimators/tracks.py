@@ -152,10 +152,11 @@ class SourceTracker:
         self.speech_threshold = float(speech_threshold)
         self.min_peak_value = float(min_peak_value)
         self.min_pair_fraction = float(min_pair_fraction)
-        self.gate_min_s = float(gate_min_s) if gate_min_s is not None else 2.5 / self.sample_rate_hz
+        # floors in samples and in time: at 48 kHz reverberant peaks wander by more samples
+        self.gate_min_s = float(gate_min_s) if gate_min_s is not None else max(2.5 / self.sample_rate_hz, 8e-5)
         self.gate_max_s = float(gate_max_s)
         self.birth_max_residual_s = (float(birth_max_residual_s) if birth_max_residual_s is not None
-                                     else 1.5 / self.sample_rate_hz)
+                                     else max(1.5 / self.sample_rate_hz, 6e-5))
         self.confirm_hits = int(confirm_hits)
         self.confirm_window_s = float(confirm_window_s)
         self.forget_after_s = float(forget_after_s)
@@ -174,6 +175,15 @@ class SourceTracker:
         self._H = pair_matrix(self.n_devices)
         self._H0 = self._H[:, 1:]
         self._rows = np.arange(self.n_pairs)
+        # per device r: the pairs (r, j) / (j, r) with every other device j, and the sign that turns the
+        # pair's TDOA into toa_j - toa_r
+        self._star, self._star_other = [], []
+        for r in range(self.n_devices):
+            idx = np.flatnonzero((self._pairs == r).any(axis=1))
+            other = np.where(self._pairs[idx, 0] == r, self._pairs[idx, 1], self._pairs[idx, 0])
+            sign = np.where(self._pairs[idx, 0] == r, -1.0, 1.0)
+            self._star.append((idx, sign))
+            self._star_other.append(other)
         self.reset()
 
     # -- state ---------------------------------------------------------------------------------------
@@ -284,7 +294,10 @@ class SourceTracker:
         toa = x[:m] + self.frame_period_s * x[m:]
         P = kf.P[:m, :m]
         var = np.einsum("ij,jk,ik->i", self._H0, P, self._H0)
-        gate = np.clip(3.0 * np.sqrt(np.maximum(var, 0.0)), self.gate_min_s, self.gate_max_s)
+        gate = np.maximum(3.0 * np.sqrt(np.maximum(var, 0.0)), self.gate_min_s)
+        # the cap keeps a tracked source from wandering onto clutter; a device the track has not observed yet
+        # (its prior spread is far wider) keeps its whole gate, so that it can be picked up
+        gate = np.where(gate <= 4 * self.gate_max_s, np.minimum(gate, self.gate_max_s), gate)
         return self._H0 @ toa, gate
 
     def _associate(self, peak_tdoa, peak_value, pair_ok, n_ok, time_s) -> bool:
@@ -385,16 +398,17 @@ class SourceTracker:
         pairs are too few, inconsistent (residual above ``max_residual_s``, default ``birth_max_residual_s``)
         or leave a usable device unconnected."""
         max_residual_s = self.birth_max_residual_s if max_residual_s is None else max_residual_s
+        need = self.n_devices - 1
         keep = ok.copy()
         for _ in range(2):
-            if keep.sum() < self.n_devices - 1:
+            if keep.sum() < need:
                 return None
             H0 = self._H0[keep]
             sol, *_ = np.linalg.lstsq(H0, tdoa[keep], rcond=None)
             resid = np.abs(self._H0 @ sol - tdoa)
             keep = ok & (resid <= max_residual_s)
         n_ok = int(ok.sum())
-        if keep.sum() < max(self.n_devices - 1, math.ceil(self.min_pair_fraction * n_ok)):
+        if keep.sum() < max(need, math.ceil(self.min_pair_fraction * n_ok)):
             return None
         covered = np.zeros(self.n_devices, bool)
         covered[self._pairs[keep, 0]] = True
@@ -408,13 +422,38 @@ class SourceTracker:
         return np.concatenate([[0.0], sol]), keep
 
     def _birth(self, peak_tdoa, peak_value, pair_ok, n_ok, usable, time_s) -> None:
-        free = np.where(self._used | (peak_value < self.min_peak_value), -np.inf, peak_value)
-        k = np.argmax(free, axis=1)
-        ok = pair_ok & np.isfinite(free[self._rows, k])
-        if ok.sum() < self.n_devices - 1:
+        """A tentative track from the peaks no track took: hypotheses from each usable device's pairs with
+        every other device (their best free peaks give one TOA vector each), the one most pairs support (any
+        free peak within ``birth_max_residual_s``) refitted on its support (robust to pairs whose best peak is
+        a reflection or another source, which a plain least-squares fit of the best peaks is not)."""
+        free_ok = ~self._used & (peak_value >= self.min_peak_value) & pair_ok[:, None]
+        free = np.where(free_ok, peak_value, -np.inf)
+        k_best = np.argmax(free, axis=1)
+        has = np.isfinite(free[self._rows, k_best])
+        if has.sum() < self.n_devices - 1:
             return
+        best_tdoa = peak_tdoa[self._rows, k_best]
+        tol = self.birth_max_residual_s
+        best = None
+        for r in np.flatnonzero(usable):
+            idx, sign = self._star[r]
+            ok = has[idx] & usable[self._star_other[r]]
+            if ok.sum() < max(2, usable.sum() - 2):
+                continue
+            toa = np.zeros(self.n_devices)
+            toa[self._star_other[r][ok]] = sign[ok] * best_tdoa[idx[ok]]   # toa_j - toa_r
+            toa -= toa[0]
+            near = np.abs(peak_tdoa - (self._H @ toa)[:, None]) <= tol
+            support = (near & free_ok).any(axis=1)
+            n = int(support.sum())
+            if best is None or n > best[0]:
+                best = (n, support, near & free_ok)
+        if best is None:
+            return
+        n, support, near = best
+        k = np.argmax(np.where(near, peak_value, -np.inf), axis=1)
         tdoa = peak_tdoa[self._rows, k]
-        fit = self._fit(tdoa, ok, usable)
+        fit = self._fit(tdoa, support, usable)
         if fit is None:
             return
         toa, keep = fit

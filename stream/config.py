@@ -46,7 +46,7 @@ class EngineConfig:
     smallest usable GCC-PHAT peak ``5 / sqrt(frame_samples)``.
     """
 
-    estimator: Estimator = "tracks"
+    estimator: Estimator = "kalman"
     working_rate_hz: float | None = None
     frame_samples: int | None = None
     hop_samples: int | None = None

@@ -264,7 +264,8 @@ class Pipeline:
                                                      raw=p_speech < self.tracker.speech_threshold)
             tdoa = TdoaFrame(block.seq, time_s, peak_tdoa[:, 0], peak_value[:, 0])
             fine = self.tracker.update(peak_tdoa, peak_value, speech_probability=p_speech,
-                                       usable=self.gcc.usable, time_s=time_s, noise_peaks=self.gcc.noise_peaks)
+                                       usable=self.gcc.usable, time_s=time_s,
+                                       noise_peaks=self.gcc.noise_peaks if self.gcc.noise_mature else None)
             gated = self.tracker.gated
             track_id = self.tracker.steered_id
             if track_id < 0:   # no talker tracked: the output is the reference device, not a beam at the noise

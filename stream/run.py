@@ -257,11 +257,15 @@ def _finalise(report, out, cfg, pipeline, fixture, names, paths, collector, t_wa
                                           "speech_fraction": float(np.mean(np.asarray(pipeline.state.speech_probability)
                                                                           >= pipeline.tracker.speech_threshold))
                                           if pipeline.state.speech_probability else 0.0}
+            note = None
             if sources["n_speech_frames"] == 0:
-                log.warning("No speech was detected in the whole stream; the output is the reference device "
-                            "(no beam is steered at a noise source).")
+                note = ("No speech was detected in the whole stream; the output is the reference device "
+                        "(no beam is steered at a noise source).")
             elif not any(t["kind"] == "speech" for t in sources["tracks"]):
-                log.warning("Speech was detected but no talker could be tracked; the output is the reference device.")
+                note = "Speech was detected but no talker could be tracked; the output is the reference device."
+            if note is not None:   # the run's log collector is already detached here
+                log.warning(note)
+                collector.messages.append(note)
             report["sources"] = sources
         if pipeline.calibrator is not None:
             report["calibration"] = {**pipeline.calibrator.report(), "applied": pipeline.geometry_log}
