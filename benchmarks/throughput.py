@@ -75,6 +75,7 @@ from stream.config import EngineConfig  # noqa: E402
 from stream.pipeline import make_estimator  # noqa: E402
 
 SEED = 20240611
+REPO = pathlib.Path(__file__).resolve().parents[1]
 MAX_DELAY_S = 1.5e-3          # per-device delays drawn in +-MAX_DELAY_S (well inside max_tdoa_s)
 SENSOR_SNR_DB = 25.0
 GCC_N_CHANNELS = 8
@@ -537,6 +538,56 @@ def bench_engine(repeats: int, audio_s: float, profile: bool) -> dict:
     return result
 
 
+def bench_engine_tracks(repeats: int) -> dict:
+    """The whole engine with the multi-source tracker (``estimator="tracks"``: Silero speech presence,
+    noise-aware multi-peak GCC-PHAT, the bank of TOA tracks) against the same engine with the single
+    ``KalmanToa``, alternating runs in this process, on real speech: the 8 device files of the shipped
+    ``async_8dev`` fixture (48 / 44.1 kHz, resampled to 16 kHz by the engine; given as plain files so that
+    no evaluation runs), frame 512, hop 128. CPU share of one core (process time / audio duration) and the
+    median ``Pipeline.process_block`` time per hop, also as a ratio to the FFT floor of 8 x 512."""
+    import logging
+
+    from stream.fixture import load_fixture
+    from stream.run import run_replay
+
+    logging.getLogger().setLevel(logging.ERROR)
+    m, fs, frame, hop = CPU_CONFIG
+    fx = load_fixture(REPO / "replay_fixtures" / "async_8dev")
+    files = [d.path for d in fx.devices][:m]
+    figures: dict[str, dict[str, list]] = {e: {"cpu": [], "block": [], "vad": []} for e in ("kalman", "tracks")}
+    with tempfile.TemporaryDirectory(prefix="throughput_tracks_") as tmp:
+        tmp = pathlib.Path(tmp)
+        for r in range(repeats + 1):   # run 0 is the warm-up (imports, compiled caches, the VAD model)
+            for est in ("kalman", "tracks"):
+                config = EngineConfig(working_rate_hz=fs, frame_samples=frame, hop_samples=hop, estimator=est,
+                                      plots=False, progress=False)
+                outcome = run_replay(files, tmp / f"{est}{r}", config=config)
+                rep = outcome.report
+                if r:
+                    audio = rep["stream"]["audio_s"]
+                    figures[est]["cpu"].append(rep["timing"]["cpu_s"] / audio)
+                    figures[est]["block"].append(rep["timing"]["block_ms_median"])
+                    sp = rep.get("sources", {}).get("speech_presence", {})
+                    figures[est]["vad"].append(sp.get("backend", ""))
+    floor = Floor(PathConfig(m, fs, frame, hop))
+    floor.load(np.zeros((frame, m), np.float32))
+    ts = []
+    for _ in range(200):
+        t0 = time.perf_counter()
+        floor.ffts()
+        ts.append(time.perf_counter() - t0)
+    floor_ms = 1e3 * float(np.median(ts[20:]))
+    out = {"tracks_vad_backend": figures["tracks"]["vad"][-1] if figures["tracks"]["vad"] else "",
+           "tracks_fft_floor_ms_8x512": floor_ms}
+    for est in ("kalman", "tracks"):
+        out[f"engine_{est}_cpu_fraction_8dev_16k_hop128"] = float(np.median(figures[est]["cpu"]))
+        out[f"engine_{est}_block_ms_median"] = float(np.median(figures[est]["block"]))
+        out[f"engine_{est}_block_ratio_to_fft_floor"] = out[f"engine_{est}_block_ms_median"] / floor_ms
+    out["tracks_cpu_ratio_to_kalman"] = (out["engine_tracks_cpu_fraction_8dev_16k_hop128"]
+                                         / out["engine_kalman_cpu_fraction_8dev_16k_hop128"])
+    return out
+
+
 def engine_split(wavs: list[pathlib.Path], out_dir: pathlib.Path, config: EngineConfig) -> dict[str, float]:
     """One run_replay with a clock around the engine's parts (class attributes wrapped for the run
     and restored): seconds per second of audio. ``process_block`` includes the stages listed under
@@ -667,6 +718,8 @@ def main(argv: list[str] | None = None) -> int:
     paths, rows = bench_paths(repeats, hops_per_round, audio_s=4.0 if args.quick else 8.0)
     cpu = bench_cpu_path(cpu_repeats, cpu_audio_s)
     engine = bench_engine(cpu_repeats, cpu_audio_s, args.profile)
+    tracks = bench_engine_tracks(1 if args.quick else max(2, cpu_repeats // 2))
+    engine.update(tracks)
     if args.profile:
         profile_path(4.0)
     result.update(gcc)
@@ -725,6 +778,15 @@ def main(argv: list[str] | None = None) -> int:
     m = result["machine"]
     print(f"machine: nproc {m['nproc']}, load {m['loadavg_start']} -> {m['loadavg_end']}, "
           f"elapsed {result['elapsed_s']:.0f} s")
+    print()
+    print("Whole engine with the multi-source tracker vs the single Kalman, async_8dev speech, 8 devices, "
+          "16 kHz, frame 512, hop 128")
+    print(f"  speech presence: {result['tracks_vad_backend']}; FFT floor {result['tracks_fft_floor_ms_8x512']:.3f} ms/hop")
+    for est in ("kalman", "tracks"):
+        print(f"  {est:7s} CPU {100 * result[f'engine_{est}_cpu_fraction_8dev_16k_hop128']:5.1f} % of a core, "
+              f"process_block median {result[f'engine_{est}_block_ms_median']:.3f} ms "
+              f"({result[f'engine_{est}_block_ratio_to_fft_floor']:.1f} x floor)")
+    print(f"  tracks / kalman CPU: {result['tracks_cpu_ratio_to_kalman']:.2f}  (target: whole engine <= 5 % of a core)")
     print(json.dumps(result, sort_keys=False))
     return 0
 

@@ -48,8 +48,8 @@ _WEIGHTINGS = {"phat": 0, "subtract": 1, "subtract-snr": 2}
 _jit = numba.njit(cache=True, nogil=True, error_model="numpy")
 
 # Parameter slots of the compiled call (one float64 array instead of many arguments).
-_P_MAX_LAG, _P_RATE_HZ, _P_ALPHA, _P_MODE, _P_SPEECH, _P_N_PEAKS, _P_UPDATE = range(7)
-_N_PARAMS = 7
+_P_MAX_LAG, _P_RATE_HZ, _P_ALPHA, _P_MODE, _P_SPEECH, _P_N_PEAKS, _P_UPDATE, _P_SMOOTH, _P_NOISE_SCALE = range(9)
+_N_PARAMS = 9
 
 _OK, _BAD_SPECTRA_SHAPE, _BAD_VALID_SHAPE = 0, 1, 2
 _EPS_REL = np.float32(1e-6)
@@ -109,15 +109,18 @@ def _channel_ok(x, valid):
 
 
 @_jit
-def _pair_spectrum(xi, xj, phi, g, scratch, a, mode, update):
-    """One pair's weighted cross spectrum into ``g`` (module doc): ``X_i X_j^*`` minus the noise
-    cross power ``phi`` (not for "phat"), optional per-bin weight, PHAT normalisation; then the noise
-    average moves towards ``X_i X_j^*`` by ``a``. ``scratch`` (>= n_bins floats) holds |G|^2."""
+def _pair_spectrum(xi, xj, phi, sm, g, scratch, a, b, mode, update, phi_scale):
+    """One pair's weighted cross spectrum into ``g`` (module doc): the short-time average ``sm`` of
+    ``X_i X_j^*`` (moved by ``b``; ``b = 1``: this frame only) minus the noise cross power ``phi`` (for
+    "phat": this frame's ``X_i X_j^*`` alone), optional per-bin weight, PHAT normalisation; then the noise
+    average moves towards ``X_i X_j^*`` by ``a``. ``phi_scale`` undoes the average's start-up bias (it starts
+    at 0). ``scratch`` (>= n_bins floats) holds |G|^2."""
     n_bins = xi.shape[0]
     peak2 = np.float32(0.0)
     for k in range(n_bins):
         c = xi[k] * xj[k].conjugate()
-        r = c if mode == 0 else c - phi[k]
+        sm[k] += b * (c - sm[k])
+        r = c if mode == 0 else sm[k] - phi_scale * phi[k]
         g[k] = r
         m2 = r.real * r.real + r.imag * r.imag
         scratch[k] = m2
@@ -131,9 +134,9 @@ def _pair_spectrum(xi, xj, phi, g, scratch, a, mode, update):
     one = np.float32(1.0)
     if mode == 2:
         for k in range(n_bins):
-            c = xi[k] * xj[k].conjugate()
+            c = sm[k]
             ac = np.sqrt(c.real * c.real + c.imag * c.imag)
-            an = abs(phi[k])
+            an = phi_scale * abs(phi[k])
             w = one - an / (ac + _TINY)
             w = w if w > 0 else np.float32(0.0)
             g[k] = g[k] * (w / np.sqrt(scratch[k] + eps2))
@@ -146,6 +149,7 @@ def _pair_spectrum(xi, xj, phi, g, scratch, a, mode, update):
     numba.int64(numba.types.Array(numba.complex64, 2, "F"),  # spectra (n_bins, M), a C-contiguous transpose
                 numba.types.Array(numba.bool_, 1, "A", readonly=True),
                 numba.complex64[:, ::1],  # noise cross-power spectra (n_pairs, n_bins), state
+                numba.complex64[:, ::1],  # short-time cross-power spectra (n_pairs, n_bins), state
                 numba.complex64[:, ::1],  # cross work (n_pairs, n_bins)
                 numba.float32[:, ::1],    # correlation work (n_pairs, n_fft)
                 numba.float64[::1],       # parameters
@@ -153,7 +157,7 @@ def _pair_spectrum(xi, xj, phi, g, scratch, a, mode, update):
                 numba.bool_[::1]),        # usable channels (M,), output
     cache=True, nogil=True, error_model="numpy",
 )
-def _frame(spectra, valid, noise, cross, corr, params, peak_tdoa, peak_value, usable):
+def _frame(spectra, valid, noise, smooth, cross, corr, params, peak_tdoa, peak_value, usable):
     """One frame: noise cross-power update and removal, PHAT, batched irfft, N best peaks per pair."""
     n_bins, m = spectra.shape
     if noise.shape[1] != n_bins or noise.shape[0] != m * (m - 1) // 2:
@@ -161,6 +165,7 @@ def _frame(spectra, valid, noise, cross, corr, params, peak_tdoa, peak_value, us
     if valid.shape[0] != m:
         return _BAD_VALID_SHAPE
     spectra, valid, noise, cross = borrowed(spectra), borrowed(valid), borrowed(noise), borrowed(cross)
+    smooth = borrowed(smooth)
     corr, peak_tdoa, peak_value, usable = borrowed(corr), borrowed(peak_tdoa), borrowed(peak_value), borrowed(usable)
     spec = spectra.T
     max_lag = int(params[_P_MAX_LAG])
@@ -168,6 +173,8 @@ def _frame(spectra, valid, noise, cross, corr, params, peak_tdoa, peak_value, us
     mode = int(params[_P_MODE])
     a = np.float32(params[_P_ALPHA] * (1.0 - min(max(params[_P_SPEECH], 0.0), 1.0)))
     update = params[_P_UPDATE] != 0.0
+    b = np.float32(params[_P_SMOOTH])
+    phi_scale = np.float32(params[_P_NOISE_SCALE])
     for i in range(m):
         usable[i] = _channel_ok(spec[i], valid[i])
     p = 0
@@ -176,7 +183,7 @@ def _frame(spectra, valid, noise, cross, corr, params, peak_tdoa, peak_value, us
         for j in range(i + 1, m):
             g = cross[p]
             if usable[i] and usable[j]:
-                _pair_spectrum(xi, spec[j], noise[p], g, corr[p], a, mode, update)
+                _pair_spectrum(xi, spec[j], noise[p], smooth[p], g, corr[p], a, b, mode, update, phi_scale)
             else:
                 g[:] = 0.0
             p += 1
@@ -232,11 +239,15 @@ class NoiseAwareGcc:
         How the noise cross-power spectrum is used before the PHAT weighting (module doc).
     noise_time_constant_s : float
         Time constant of the recursive noise cross-power average over non-speech frames, seconds.
+    smoothing_time_constant_s : float
+        Time constant of the short-time average of every pair's cross-power spectrum that the noise is removed
+        from (0: each frame alone, the paper's eq. 4). A few frames of the same talker give a much steadier
+        peak than one in reverberation and noise; it must stay short against a moving talker and a turn.
     """
 
     def __init__(self, n_channels: int, *, n_fft: int, sample_rate_hz: float, hop_s: float,
                  max_tdoa_s: float, n_peaks: int = 3, weighting: Weighting = "subtract",
-                 noise_time_constant_s: float = 1.0) -> None:
+                 noise_time_constant_s: float = 1.0, smoothing_time_constant_s: float = 0.0) -> None:
         if int(n_channels) != n_channels or n_channels < 2:
             raise ValueError(f"{n_channels=} must be an integer >= 2")
         if int(n_fft) != n_fft or n_fft < 8:
@@ -266,17 +277,28 @@ class NoiseAwareGcc:
         self._params[_P_MODE] = _WEIGHTINGS[weighting]
         self._params[_P_N_PEAKS] = self.n_peaks
         self._params[_P_UPDATE] = 1.0
+        if not (np.isfinite(smoothing_time_constant_s) and smoothing_time_constant_s >= 0):
+            raise ValueError(f"{smoothing_time_constant_s=} must be finite and >= 0")
+        self.smoothing_time_constant_s = float(smoothing_time_constant_s)
+        self._params[_P_SMOOTH] = (1.0 if smoothing_time_constant_s == 0
+                                   else 1.0 - math.exp(-hop_s / smoothing_time_constant_s))
         self._noise = np.zeros((self.n_pairs, self.n_bins), np.complex64)
+        self._smooth = np.zeros((self.n_pairs, self.n_bins), np.complex64)
         self._cross = np.zeros((self.n_pairs, self.n_bins), np.complex64)
         self._corr = np.zeros((self.n_pairs, self.n_fft), np.float32)
         self._usable = np.zeros(self.n_channels, np.bool_)
         self._all_valid = np.ones(self.n_channels, np.bool_)
         self.n_noise_frames = 0.0   # effective number of non-speech frames averaged so far
+        self._noise_weight = 0.0    # 1 - prod(1 - a_k): the weight the average has gathered (bias correction)
+        self._params[_P_NOISE_SCALE] = 0.0
 
     def reset(self) -> None:
-        """Forget the noise cross-power spectra."""
+        """Forget the noise and short-time cross-power spectra."""
         self._noise[:] = 0.0
+        self._smooth[:] = 0.0
         self.n_noise_frames = 0.0
+        self._noise_weight = 0.0
+        self._params[_P_NOISE_SCALE] = 0.0
 
     @property
     def noise_cross_power(self) -> np.ndarray:
@@ -337,7 +359,7 @@ class NoiseAwareGcc:
             spectra = np.array(spectra.T, dtype=np.complex64, order="C").T
         if not (type(valid) is np.ndarray and valid.dtype == np.bool_):
             valid = np.asarray(valid, dtype=np.bool_)
-        code = _frame(spectra, valid, self._noise, self._cross, self._corr, self._params, peak_tdoa, peak_value,
+        code = _frame(spectra, valid, self._noise, self._smooth, self._cross, self._corr, self._params, peak_tdoa, peak_value,
                       self._usable)
         if code == _BAD_SPECTRA_SHAPE:
             raise ValueError(f"spectra.shape={spectra.shape} must be (n_bins, n_channels)="
@@ -347,6 +369,8 @@ class NoiseAwareGcc:
         if update_noise:
             a = self._params[_P_ALPHA] * (1.0 - min(max(p, 0.0), 1.0))
             self.n_noise_frames = (1.0 - a) * self.n_noise_frames + a / self._params[_P_ALPHA]
+            self._noise_weight += a * (1.0 - self._noise_weight)
+            self._params[_P_NOISE_SCALE] = 1.0 / self._noise_weight if self._noise_weight > 1e-6 else 0.0
         return peak_tdoa, peak_value
 
     def noise_peaks(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

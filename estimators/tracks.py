@@ -130,7 +130,8 @@ class SourceTracker:
                  gate_min_s: float | None = None, gate_max_s: float = 5e-4, birth_max_residual_s: float | None = None,
                  confirm_hits: int = 4, confirm_window_s: float = 0.3, forget_after_s: float = 30.0,
                  activity_time_constant_s: float = 0.4, switch_ratio: float = 1.5, same_source_s: float = 2e-4,
-                 noise_every_s: float = 0.25, noise_quiet_activity: float = 0.3) -> None:
+                 noise_every_s: float = 0.25, noise_quiet_activity: float = 0.3,
+                 max_rate_s_per_s: float = 3e-3) -> None:
         if int(n_devices) != n_devices or n_devices < 2:
             raise ValueError(f"{n_devices=} must be an integer >= 2")
         if target not in ("active-talker", "nearest"):
@@ -167,6 +168,8 @@ class SourceTracker:
         self.quiet_beta = 1.0 - math.exp(-self.frame_period_s / 1.0)   # 1 s average over non-speech frames
         self.quiet_skip_frames = max(1, int(round(0.3 / self.frame_period_s)))  # 0.3 s after speech: its tail
         self.noise_quiet_activity = float(noise_quiet_activity)
+        self.max_rate_s_per_s = float(max_rate_s_per_s)
+        self.young_s = 3.0
         self._kalman_kwargs = dict(frame_period_s=self.frame_period_s, accel_std_s_per_s2=accel_std_s_per_s2,
                                    tdoa_std_s=tdoa_std_s, gate_probability=gate_probability,
                                    reinit_after_n_gated=None, min_confidence=0.0)
@@ -272,6 +275,7 @@ class SourceTracker:
         else:
             for t in self.tracks:
                 t.kalman.predict()
+                self._hold_still(t, quiet=True)
             self._quiet_frames += 1
             if n_ok and self._quiet_frames >= self.quiet_skip_frames:   # past the talker's reverberant tail
                 self._quiet_check(peak_tdoa_s, peak_value, pair_ok, n_ok)
@@ -295,9 +299,11 @@ class SourceTracker:
         P = kf.P[:m, :m]
         var = np.einsum("ij,jk,ik->i", self._H0, P, self._H0)
         gate = np.maximum(3.0 * np.sqrt(np.maximum(var, 0.0)), self.gate_min_s)
-        # the cap keeps a tracked source from wandering onto clutter; a device the track has not observed yet
-        # (its prior spread is far wider) keeps its whole gate, so that it can be picked up
-        gate = np.where(gate <= 4 * self.gate_max_s, np.minimum(gate, self.gate_max_s), gate)
+        # the cap keeps a tracked source from wandering onto clutter; in a young track a device it has not
+        # pinned down yet (its spread is far wider) keeps its whole gate, so that it can be picked up or
+        # corrected; later a wide spread means the track went unhit for long, and it must not jump
+        young = self._time_s - t.born_s < self.young_s
+        gate = np.where((gate <= 4 * self.gate_max_s) | (not young), np.minimum(gate, self.gate_max_s), gate)
         return self._H0 @ toa, gate
 
     def _associate(self, peak_tdoa, peak_value, pair_ok, n_ok, time_s) -> bool:
@@ -329,6 +335,7 @@ class SourceTracker:
                     self.gated = True
             else:
                 t.kalman.predict()
+            self._hold_still(t, quiet=not hit)
             if t.kind == "speech":
                 t.activity += self.activity_beta * ((float(conf[took].mean()) if hit else 0.0) - t.activity)
             if t.kind != "tentative":
@@ -337,6 +344,15 @@ class SourceTracker:
             hit_any |= hit and t.kind != "noise"
         self._used = used
         return hit_any
+
+    def _hold_still(self, t: Track, *, quiet: bool) -> None:
+        """Keep a track's TOA rates physical: at most ``max_rate_s_per_s`` (a talker walking at 1 m/s changes
+        a TDOA by at most 2.9 ms/s; clock drift adds 0.2 ms/s), so that a rate learned from a few stray peaks
+        cannot carry a track away while it is not corrected. The rate is not damped in pauses: it is mostly
+        the devices' clock drift, which goes on while the talker is silent."""
+        x = t.kalman._kf.x
+        m = self.n_devices - 1
+        np.clip(x[m:], -self.max_rate_s_per_s, self.max_rate_s_per_s, out=x[m:])
 
     def _quiet_check(self, peak_tdoa, peak_value, pair_ok, n_ok) -> None:
         """Non-speech frame (peaks of the plain PHAT): which tracks' peaks are still there? A source that

@@ -89,8 +89,17 @@ class ArcPath:
 
 
 @dataclass(frozen=True)
+class TalkerSpec:
+    """A further talker (turn-taking scenes): its own path and sentences at given times."""
+
+    path: object
+    speech_files: tuple  # relative to the data dir
+    starts_s: tuple      # emission time of each sentence's first sample, seconds
+
+
+@dataclass(frozen=True)
 class NoiseSpec:
-    file: str            # relative to the data dir
+    file: str            # relative to the data dir, or "generated:white|pink|babble" (see _noise_signal)
     start_s: float       # excerpt start in the file
     position_m: tuple
     target_median_snr_db: float  # talker vs (noise source + sensor noise), median over devices
@@ -115,6 +124,9 @@ class Scene:
     seed: int
     speech_credit: str
     noise_credit: str
+    talkers: tuple = ()          # further TalkerSpec (talker 0 is path / speech_files above)
+    speech_starts_s: tuple = ()  # talker 0's sentence start times (default: from speech_start_s, gap)
+    source_truth: bool = False   # write truth/activity.csv and truth/toa_<source>.csv
 
 
 CMU = "audio/cmu-arctic-16k/"
@@ -143,7 +155,7 @@ def _table(center_xy, offsets_xy, z):
 
 
 def scenes() -> dict[str, Scene]:
-    """The three shipped fixtures."""
+    """The shipped fixtures."""
     out = {}
     # a) meeting_table: 6 phones on a table, seated talker, dishes in the kitchen corner.
     table_xy, table_z = (2.40, 3.10), 0.75
@@ -210,9 +222,55 @@ def scenes() -> dict[str, Scene]:
         devices=tuple(DeviceSpec(f"dev{i}", c_rate[i], c_off[i], c_drift[i], c_gain[i], pos_c[i],
                                  c_noise[i]) for i in range(8)),
         noise=None, block_hop_s=None, seed=3003, speech_credit="", noise_credit="")
+    # d) kitchen_noise: dishes at the sink start 2 s before the talker, 5 dB SNR.
+    k_xy, k_z = (2.30, 2.00), 0.78
+    phones_d = _table(k_xy, [(-0.45, -0.25), (0.35, -0.30), (0.50, 0.20), (-0.20, 0.35)], k_z)
+    out["kitchen_noise"] = Scene(
+        name="kitchen_noise",
+        description=("Four phones on a kitchen table and a laptop on the counter record a seated "
+                     "talker while dishes clatter at the sink from 2 s before the talker starts "
+                     "(5 dB SNR, median over devices); 16 kHz, laptop 44.1 kHz, offsets 0-0.6 s, "
+                     "drifts up to +-80 ppm."),
+        sim_rate_hz=16000, duration_s=10.0, room_dims_m=(4.4, 3.8, 2.6), sabine_rt60_s=0.45,
+        max_order_cap=40, speech_files=(VCTK + "p376_193.wav",),
+        speech_start_s=2.0, speech_gap_s=0.0,
+        path=StaticPath((k_xy[0] - 0.10, k_xy[1] - 0.85, k_z + 0.40)),
+        devices=tuple(DeviceSpec(f"phone{i}", 16000, (0.0, 0.35, 0.12, 0.60)[i],
+                                 (30.0, -55.0, 80.0, -20.0)[i], (0.0, -2.0, 1.0, -1.0)[i],
+                                 phones_d[i], -62.0) for i in range(4))
+        + (DeviceSpec("laptop", 44100, 0.25, -70.0, -4.0, (0.60, 3.40, 0.95), -70.0),),
+        noise=NoiseSpec("audio/speechcommands-noise/doing_the_dishes.wav", 10.0,
+                        (4.00, 3.30, 0.95), 5.0),
+        block_hop_s=None, seed=4004, speech_credit="", noise_credit="", source_truth=True)
+    # e) two_talkers: two people at a meeting table take turns; a projector fan hums (pink).
+    m_xy, m_z = (3.00, 2.50), 0.74
+    phones_e = _table(m_xy, [(-0.70, -0.20), (-0.30, 0.25), (0.05, -0.30), (0.40, 0.20),
+                             (0.75, -0.15), (0.00, 0.05)], m_z)
+    out["two_talkers"] = Scene(
+        name="two_talkers",
+        description=("Two seated people at opposite ends of a meeting table take turns (A, B, A, "
+                     "B; 0.4 s between turns) over six phones; a projector fan (pink noise, 25 dB "
+                     "SNR) hums above the table; 16 kHz, offsets 0-0.4 s, drifts up to +-60 ppm."),
+        sim_rate_hz=16000, duration_s=13.3, room_dims_m=(6.0, 5.0, 2.8), sabine_rt60_s=0.35,
+        max_order_cap=40,
+        speech_files=(CMU + "cmu_arctic_us_aew_a0001.wav", CMU + "cmu_arctic_us_aew_a0003.wav"),
+        speech_start_s=0.3, speech_gap_s=0.0, speech_starts_s=(0.3, 7.6),
+        path=StaticPath((m_xy[0] - 1.30, m_xy[1] + 0.10, m_z + 0.45)),
+        talkers=(TalkerSpec(StaticPath((m_xy[0] + 1.25, m_xy[1] - 0.30, m_z + 0.50)),
+                            (CMU + "cmu_arctic_us_axb_a0004.wav", CMU + "cmu_arctic_us_axb_a0005.wav"),
+                            (4.45, 11.5)),),
+        devices=tuple(DeviceSpec(f"phone{i}", 16000, (0.05, 0.0, 0.40, 0.22, 0.31, 0.13)[i],
+                                 (15.0, -60.0, 42.0, -25.0, 60.0, -5.0)[i],
+                                 (0.0, -1.0, 1.5, -2.5, 0.5, -1.5)[i], phones_e[i], -62.0)
+                      for i in range(6)),
+        noise=NoiseSpec("generated:pink", 0.0, (3.20, 2.10, 2.45), 25.0),
+        block_hop_s=None, seed=5005, speech_credit="", noise_credit="", source_truth=True)
     credits = {"meeting_table": (CMU_CREDIT, DISHES_CREDIT),
                "walking_talker": (CMU_CREDIT, "none (white sensor noise generated by the builder)"),
-               "async_8dev": (VCTK_CREDIT, "none (white sensor noise generated by the builder)")}
+               "async_8dev": (VCTK_CREDIT, "none (white sensor noise generated by the builder)"),
+               "kitchen_noise": (VCTK_CREDIT, DISHES_CREDIT),
+               "two_talkers": (CMU_CREDIT, "pink noise generated by the builder (seeded), played "
+                               "from a point source; white sensor noise")}
     return {k: dataclasses.replace(v, speech_credit=credits[k][0], noise_credit=credits[k][1])
             for k, v in out.items()}
 
@@ -299,15 +357,17 @@ def _mic_array(scene: Scene) -> np.ndarray:
     return np.array([d.position_m for d in scene.devices], float)
 
 
-def emission_time(scene: Scene, t_s: np.ndarray, mic_m: np.ndarray, c: float) -> np.ndarray:
+def emission_time(scene: Scene, t_s: np.ndarray, mic_m: np.ndarray, c: float, path=None) -> np.ndarray:
     """Emission time ``tau`` of the direct-path wavefront reaching ``mic_m`` at true time ``t_s``.
 
-    Solves ``t = tau + |p(tau) - mic| / c`` by fixed-point iteration (contraction ``v / c``).
+    Solves ``t = tau + |p(tau) - mic| / c`` by fixed-point iteration (contraction ``v / c``);
+    ``path`` is the source's path (default: talker 0's).
     """
+    path = scene.path if path is None else path
     t_s = np.asarray(t_s, float)
-    tau = t_s - np.linalg.norm(scene.path(t_s) - mic_m, axis=1) / c
+    tau = t_s - np.linalg.norm(path(t_s) - mic_m, axis=1) / c
     for _ in range(6):
-        tau = t_s - np.linalg.norm(scene.path(tau) - mic_m, axis=1) / c
+        tau = t_s - np.linalg.norm(path(tau) - mic_m, axis=1) / c
     return tau
 
 
@@ -321,15 +381,17 @@ def device_clock(dev: DeviceSpec, t_s):
     return (np.asarray(t_s) - dev.start_offset_s) * (1.0 + dev.drift_ppm * 1e-6)
 
 
-def relative_toa(scene: Scene, ref_true_s: np.ndarray, c: float, *, synchronous: bool) -> np.ndarray:
+def relative_toa(scene: Scene, ref_true_s: np.ndarray, c: float, *, synchronous: bool,
+                 path=None) -> np.ndarray:
     """Relative TOA, shape (n, M), for wavefronts reaching device 0 at true times ``ref_true_s``.
 
     With ``synchronous`` the device clocks are ideal (no offset, no drift) and the result is
-    ``t_i - t_0``; otherwise it is ``T_i(t_i) - T_0(t_0)``.
+    ``t_i - t_0``; otherwise it is ``T_i(t_i) - T_0(t_0)``. ``path``: the source (default talker 0).
     """
+    path = scene.path if path is None else path
     mics = _mic_array(scene)
-    tau = emission_time(scene, ref_true_s, mics[0], c)
-    p = scene.path(tau)
+    tau = emission_time(scene, ref_true_s, mics[0], c, path)
+    p = path(tau)
     t_arr = tau[:, None] + np.linalg.norm(p[:, None, :] - mics[None, :, :], axis=2) / c
     if synchronous:
         return t_arr - t_arr[:, :1]
@@ -389,19 +451,86 @@ def _convolve_moving(scene: Scene, sig: np.ndarray, n_out: int, *, anechoic: boo
     return out
 
 
-def _dry_speech(scene: Scene, data: Path, n: int) -> np.ndarray:
+def _dry_speech(scene: Scene, data: Path, n: int, talker: int = 0) -> np.ndarray:
+    """Dry signal of talker ``talker`` (0: the scene's own, k: ``scene.talkers[k - 1]``), length ``n``."""
     fs = scene.sim_rate_hz
+    if talker == 0:
+        files, starts = scene.speech_files, scene.speech_starts_s
+    else:
+        files, starts = scene.talkers[talker - 1].speech_files, scene.talkers[talker - 1].starts_s
     s = np.zeros(n)
     k = int(round(scene.speech_start_s * fs))
-    for f in scene.speech_files:
+    for i, f in enumerate(files):
         x = _trim_silence(_load_mono(data / f, fs), fs)
         x = 0.1 * x / np.sqrt(np.mean(x ** 2))
+        if starts:
+            k = int(round(starts[i] * fs))
         m = min(len(x), n - k)
         if m <= 0:
             break
-        s[k:k + m] = x[:m]
+        s[k:k + m] += x[:m]
         k += len(x) + int(round(scene.speech_gap_s * fs))
     return 0.9 * s / np.abs(s).max()
+
+
+SPEECH_FILES = tuple(CMU + f"cmu_arctic_us_{v}_a{i:04d}.wav" for v, i in
+                     [("aew", 1), ("aew", 2), ("aew", 3), ("axb", 4), ("axb", 5), ("axb", 6)]) + \
+    tuple(VCTK + f for f in ("p255_367.wav", "p301_102.wav", "p314_272.wav", "p376_193.wav"))
+BABBLE_VOICES = 6
+
+
+def _noise_signal(scene: Scene, data: Path, n: int) -> np.ndarray:
+    """The noise source's dry signal, length ``n``, unit RMS.
+
+    ``scene.noise.file`` is a recording (played from ``start_s``) or one of the generated kinds:
+    ``generated:white`` (Gaussian), ``generated:pink`` (Gaussian shaped to 1/f power above 20 Hz),
+    ``generated:babble`` (``BABBLE_VOICES`` voices talking at once, each a random-order loop of the
+    shared speech recordings that no talker of the scene uses, started at a random point).
+    """
+    spec, fs = scene.noise, scene.sim_rate_hz
+    if not spec.file.startswith("generated:"):
+        x = _load_mono(data / spec.file, fs)
+        k = int(round(spec.start_s * fs))
+        x = x[k:k + n]
+        return x / np.sqrt(np.mean(x ** 2))
+    kind = spec.file.split(":", 1)[1]
+    rng = np.random.default_rng([scene.seed, 77])
+    if kind == "white":
+        x = rng.standard_normal(n)
+    elif kind == "pink":
+        spec_w = np.fft.rfft(rng.standard_normal(n))
+        f = np.fft.rfftfreq(n, 1 / fs)
+        x = np.fft.irfft(spec_w / np.sqrt(np.maximum(f, 20.0)), n)
+    elif kind == "babble":
+        used = set(scene.speech_files) | {f for t in scene.talkers for f in t.speech_files}
+        pool = [_trim_silence(_load_mono(data / f, fs), fs) for f in SPEECH_FILES if f not in used]
+        x = np.zeros(n)
+        for _ in range(BABBLE_VOICES):
+            order = rng.permutation(len(pool))
+            voice = np.concatenate([pool[i] / np.sqrt(np.mean(pool[i] ** 2)) for i in order])
+            voice = np.roll(np.resize(voice, n + len(voice)), -int(rng.integers(len(voice))))[:n]
+            x += voice
+    else:
+        raise ValueError(f"unknown generated noise kind {kind!r} (white, pink, babble)")
+    return x / np.sqrt(np.mean(x ** 2))
+
+
+def speech_activity(dry: np.ndarray, fs: int, *, frame_s: float = 0.01, floor_db: float = -40.0,
+                    fill_s: float = 0.2) -> np.ndarray:
+    """Per-sample activity (bool) of a dry talker: 10 ms frames within ``floor_db`` of the loudest
+    frame, gaps shorter than ``fill_s`` filled (pauses between words are not turn ends)."""
+    h = int(round(frame_s * fs))
+    n_f = len(dry) // h
+    p = np.mean(dry[:n_f * h].reshape(n_f, h) ** 2, axis=1)
+    on = p >= p.max() * 10 ** (floor_db / 10)
+    idx = np.flatnonzero(on)
+    fill = int(round(fill_s / frame_s))
+    for a, b in zip(idx[:-1], idx[1:]):
+        if 1 < b - a <= fill:
+            on[a:b] = True
+    act = np.zeros(len(dry), bool)
+    act[:n_f * h] = np.repeat(on, h)
+    return act
 
 
 @dataclass
@@ -413,6 +542,8 @@ class Simulation:
     max_order: int
     n_rir_sets: int
     measured_rt60_s: float  # median over microphones (Schroeder, pra.experimental.measure_rt60)
+    parts: list = dataclasses.field(default_factory=list)  # per talker (M, n) components (sum = talker)
+    drys: list = dataclasses.field(default_factory=list)   # per talker dry signals
 
 
 def simulate(scene: Scene, data: Path, *, anechoic: bool = False) -> Simulation:
@@ -427,18 +558,22 @@ def simulate(scene: Scene, data: Path, *, anechoic: bool = False) -> Simulation:
     else:
         talker = _convolve_moving(scene, dry, n_sync, anechoic=anechoic)
         n_sets = n_sync // int(round(scene.block_hop_s * fs)) + 2
+    parts, drys = [talker], [dry]
+    for j, spec in enumerate(scene.talkers, start=1):
+        d = _dry_speech(scene, data, n_sync, talker=j)
+        parts.append(_convolve_static(d, _rirs(scene, spec.path(0.0)[0], anechoic=anechoic), n_sync))
+        drys.append(d)
+    if len(parts) > 1:
+        talker = np.sum(parts, axis=0)
     noise = np.zeros_like(talker)
     if scene.noise is not None:
-        x = _load_mono(data / scene.noise.file, fs)
-        k = int(round(scene.noise.start_s * fs))
-        x = x[k:k + n_sync]
-        noise = _convolve_static(x / np.sqrt(np.mean(x ** 2)),
+        noise = _convolve_static(_noise_signal(scene, data, n_sync),
                                  _rirs(scene, scene.noise.position_m, anechoic=anechoic), n_sync)
     rt60 = float("nan")
     if not anechoic:
         rt60 = float(np.median([pra.experimental.measure_rt60(h, fs=fs)
                                 for h in _rirs(scene, scene.path(0.0)[0], anechoic=False)]))
-    return Simulation(talker, noise, dry, float(e_abs), int(max_order), n_sets, rt60)
+    return Simulation(talker, noise, dry, float(e_abs), int(max_order), n_sets, rt60, parts, drys)
 
 
 def _device_positions(scene: Scene, dev: DeviceSpec) -> np.ndarray:
@@ -535,25 +670,76 @@ def build(scene: Scene, data: Path, out_root: Path) -> dict:
     # Stored 6 dB down (SYNC_GAIN_DB) to keep the files small; 16 bits still leave > 70 dB SNR.
     _write_flac(folder / "truth" / "sync.flac", sync.T * 10 ** (SYNC_GAIN_DB / 20), fs)
     t_sync = np.arange(0.0, (n_sync - 1) / fs + 1e-12, TOA_GRID_S)
-    toa_sync = relative_toa(scene, t_sync, c, synchronous=True)
+    mics = _mic_array(scene)
+    paths = [scene.path] + [t.path for t in scene.talkers]
+    acts = [speech_activity(d, fs) for d in sim.drys]
+
+    def active(t_true):
+        """Talker index per true arrival time at mic 0 and per-talker flags (held: the last talker
+        who spoke stays the target through pauses; talker 0 before anyone)."""
+        flags = np.zeros((len(t_true), len(paths)), bool)
+        for j, path in enumerate(paths):
+            k = np.round(emission_time(scene, t_true, mics[0], c, path) * fs - delay).astype(int)
+            inside = (k >= 0) & (k < len(acts[j]))
+            flags[inside, j] = acts[j][k[inside]]
+        who = np.zeros(len(t_true), int)
+        cur = 0
+        for i, f in enumerate(flags):
+            if not f[cur] and f.any():
+                cur = int(np.argmax(f))
+            who[i] = cur
+        return who, flags
+
+    def stitched(t_true, synchronous):
+        toas = [relative_toa(scene, t_true, c, synchronous=synchronous, path=p) for p in paths]
+        if len(paths) == 1:
+            return toas[0], toas
+        who, _ = active(t_true)
+        return np.stack(toas)[who, np.arange(len(t_true))], toas
+
+    toa_sync, _ = stitched(t_sync, True)
     hdr = ["time_s"] + [f"toa_s_{i}" for i in range(n_mics)]
     _write_csv(folder / "truth" / "sync_toa.csv", hdr, np.column_stack([t_sync, toa_sync]))
-    mics = _mic_array(scene)
+
+    def aligned_clean(t_true, rate_hz):
+        # s_j at the emission time of the wavefront reaching mic 0 at t_true, summed over talkers
+        out = 0.0
+        for path, dry in zip(paths, sim.drys):
+            tau = emission_time(scene, t_true, mics[0], c, path)
+            out = out + band_limited_at(dry, tau * fs - delay, cutoff=CUTOFF * min(1.0, rate_hz / fs))
+        return out
+
     # clean_sync[n] = s at the emission time of the wavefront reaching mic 0 at t = n / fs.
-    tau = emission_time(scene, np.arange(n_sync) / fs, mics[0], c)
-    clean_sync = band_limited_at(sim.dry, tau * fs - delay, cutoff=CUTOFF)
-    _write_flac(folder / "truth" / "clean_sync.flac", clean_sync, fs)
+    _write_flac(folder / "truth" / "clean_sync.flac", aligned_clean(np.arange(n_sync) / fs, fs), fs)
     # Truth on device 0's clock.
     dev0 = scene.devices[0]
     n0 = int(round(scene.duration_s * dev0.sample_rate_hz))
     t_dev0 = np.arange(0.0, (n0 - 1) / dev0.sample_rate_hz + 1e-12, TOA_GRID_S)
-    toa = relative_toa(scene, device_true_time(dev0, t_dev0), c, synchronous=False)
+    toa, toa_each = stitched(device_true_time(dev0, t_dev0), False)
     _write_csv(folder / "truth" / "toa.csv", hdr, np.column_stack([t_dev0, toa]))
-    tau0 = emission_time(scene, device_true_time(dev0, np.arange(n0) / dev0.sample_rate_hz),
-                         mics[0], c)
-    clean = band_limited_at(sim.dry, tau0 * fs - delay,
-                            cutoff=CUTOFF * min(1.0, dev0.sample_rate_hz / fs))
+    clean = aligned_clean(device_true_time(dev0, np.arange(n0) / dev0.sample_rate_hz), dev0.sample_rate_hz)
     _write_flac(folder / "truth" / "clean.flac", clean, dev0.sample_rate_hz)
+    sources = {}
+    if scene.source_truth:
+        # Every source's own TOA and who is active, on device 0's clock.
+        who, flags = active(device_true_time(dev0, t_dev0))
+        names = [f"talker{j}" for j in range(len(paths))]
+        for name, tj in zip(names, toa_each):
+            _write_csv(folder / "truth" / f"toa_{name}.csv", hdr, np.column_stack([t_dev0, tj]))
+        kinds = ["talker"] * len(paths)
+        positions = [list(np.round(p(0.0)[0], 4)) for p in paths]
+        if scene.noise is not None:
+            static = StaticPath(tuple(scene.noise.position_m))
+            tn = relative_toa(scene, device_true_time(dev0, t_dev0), c, synchronous=False, path=static)
+            _write_csv(folder / "truth" / "toa_noise.csv", hdr, np.column_stack([t_dev0, tn]))
+            names.append("noise")
+            kinds.append("noise:" + scene.noise.file.split("/")[-1].replace("generated:", ""))
+            positions.append(list(scene.noise.position_m))
+        _write_csv(folder / "truth" / "activity.csv",
+                   ["time_s", "active_talker"] + [f"speaking_{j}" for j in range(len(paths))],
+                   np.column_stack([t_dev0, who, flags.astype(int)]), fmt="%.6g")
+        sources = {"names": names, "kinds": kinds, "toa": [f"truth/toa_{n}.csv" for n in names],
+                   "positions_m": positions, "activity": "truth/activity.csv"}
     # Emission grid from -50 ms: the truth at t = 0 refers to wavefronts emitted up to
     # (room diagonal / c) earlier.
     t_src = np.round(np.arange(-0.05, n_sync / fs, TOA_GRID_S), 9)
@@ -578,7 +764,9 @@ def build(scene: Scene, data: Path, out_root: Path) -> dict:
         "truth": {"clean": "truth/clean.flac", "toa": "truth/toa.csv", "sync": "truth/sync.flac",
                   "clean_sync": "truth/clean_sync.flac", "sync_toa": "truth/sync_toa.csv",
                   "source_path": "truth/source.csv"},
-        "credits": {"speech": "; ".join(Path(f).name for f in scene.speech_files) + ". "
+        **({"sources": sources} if sources else {}),
+        "credits": {"speech": "; ".join(Path(f).name for f in scene.speech_files
+                                        + tuple(f for t in scene.talkers for f in t.speech_files)) + ". "
                     + scene.speech_credit, "noise": (scene.noise.file.split("/")[-1] + f" from "
                     f"{scene.noise.start_s:.1f} s. " if scene.noise else "") + scene.noise_credit},
         "device": dev_rows,

@@ -22,10 +22,14 @@ def _add_engine_options(p: argparse.ArgumentParser) -> None:
                         "sources with speech presence, steered at the talker: for rooms with a noise source)")
     g.add_argument("--target", help="whom to steer at with --estimator tracks: 'active-talker' (default) or "
                                     "'nearest DEVICE' (the talker closest to a device, by name or index)")
-    g.add_argument("--vad", help="speech-presence detector (default: auto)")
+    g.add_argument("--vad", help="speech-presence detector: auto (default: Silero, else WebRTC, else energy), "
+                   "silero, webrtc or energy")
     g.add_argument("--gcc-weighting", choices=["subtract", "subtract-snr", "phat"],
                    help="noise cross-power removal before the PHAT weighting (default: subtract)")
     g.add_argument("--n-peaks", type=int, help="GCC-PHAT peaks kept per pair (default 3)")
+    g.add_argument("--gcc-smoothing-s", type=float,
+                   help="short-time average of the cross-power spectra before the noise removal, seconds "
+                        "(default 0.1; 0: every frame alone)")
     g.add_argument("--working-rate-hz", type=float, help="rate every device is resampled to (default: first device's)")
     g.add_argument("--frame-samples", type=int, help="analysis frame (default: ~85 ms, 4096 at 48 kHz)")
     g.add_argument("--hop-samples", type=int, help="hop (default: frame/4, 75%% overlap); e.g. 512/128 for low latency")

@@ -10,6 +10,9 @@ A fixture is a folder with ``fixture.toml``, one audio file per device and a ``t
 - ``sync_toa.csv``: the same for the synchronous signals ``sync.flac``; ``time_s`` is simulation
   time and ``toa_s_i`` is the pure propagation difference.
 - Device-clock time of true time ``t``: ``T_i = (t - start_offset_s[i]) * (1 + drift_ppm[i] * 1e-6)``.
+- Scenes with several sources (optional ``[sources]`` table): ``toa.csv`` follows the *active talker*
+  (the last one who spoke), ``clean.flac`` is the sum of every talker's aligned dry signal, and each
+  source has its own ``toa_<name>.csv``; ``activity.csv`` says who is active per 10 ms on device 0's clock.
 """
 from __future__ import annotations
 
@@ -26,7 +29,7 @@ try:
 except ModuleNotFoundError:  # Python 3.10
     import tomli as tomllib
 
-__all__ = ["FixtureError", "FixtureDevice", "Fixture", "load_fixture", "is_fixture_dir"]
+__all__ = ["FixtureError", "FixtureDevice", "FixtureSource", "Fixture", "load_fixture", "is_fixture_dir"]
 
 MANIFEST = "fixture.toml"
 _DEVICE_KEYS = ("name", "file", "sample_rate_hz", "start_offset_s", "drift_ppm", "gain_db",
@@ -77,6 +80,20 @@ class FixtureDevice:
 
 
 @dataclass(frozen=True)
+class FixtureSource:
+    """One sound source of a multi-source scene: ``kind`` is ``"talker"`` or ``"noise:<what>"``."""
+
+    name: str
+    kind: str
+    toa_path: Path
+    position_m: np.ndarray = field(repr=False, compare=False)
+
+    @property
+    def is_noise(self) -> bool:
+        return self.kind.startswith("noise")
+
+
+@dataclass(frozen=True)
 class Fixture:
     """A loaded ``fixture.toml``; audio and truth tables are read on demand."""
 
@@ -95,6 +112,8 @@ class Fixture:
     truth_source_path: Path | None = None
     credits: dict = field(default_factory=dict, repr=False, compare=False)
     raw: dict = field(default_factory=dict, repr=False, compare=False)
+    sources: tuple[FixtureSource, ...] = ()
+    truth_activity: Path | None = None
 
     @property
     def n_devices(self) -> int:
@@ -148,6 +167,29 @@ class Fixture:
         """
         grid, toa = self.load_truth_toa()
         return _interp_columns(np.atleast_1d(np.asarray(time_s, float)), grid, toa)
+
+    def source(self, name: str) -> FixtureSource:
+        for src in self.sources:
+            if src.name == name:
+                return src
+        raise FixtureError(f"fixture {self.name!r} has no source {name!r} (it has "
+                           f"{[s.name for s in self.sources]})")
+
+    def source_toa_at(self, name: str, time_s) -> np.ndarray:
+        """TOA of source ``name`` at device-0 clock times, shape (len(time_s), M), seconds."""
+        grid, toa = _read_toa_csv(self.source(name).toa_path, self.n_devices)
+        return _interp_columns(np.atleast_1d(np.asarray(time_s, float)), grid, toa)
+
+    def activity_at(self, time_s) -> tuple[np.ndarray, np.ndarray]:
+        """Who is active at device-0 clock times: the active talker's index (int, held through
+        pauses) and per-talker speaking flags (bool, shape (n, n_talkers)); nearest 10 ms row."""
+        path = self._need(self.truth_activity, "activity")
+        with open(path, encoding="utf-8") as f:
+            header = f.readline().strip().split(",")
+        a = _read_csv(path, header)
+        t = np.atleast_1d(np.asarray(time_s, float))
+        i = np.clip(np.searchsorted(a[:, 0], t - 0.005), 0, len(a) - 1)
+        return a[i, 1].astype(int), a[i, 2:].astype(bool)
 
     def _need(self, path: Path | None, key: str) -> Path:
         if path is None:
@@ -258,6 +300,20 @@ def load_fixture(path) -> Fixture:
             truth_paths[k] = None
     room = _get(doc, "room", where, dict)
     _get(room, "dims_m", f"{where} [room]", list)
+    sources, activity = (), None
+    if "sources" in doc:
+        w = f"{where} [sources]"
+        tab = _get(doc, "sources", where, dict)
+        names, kinds = _get(tab, "names", w, list), _get(tab, "kinds", w, list)
+        files, pos = _get(tab, "toa", w, list), _get(tab, "positions_m", w, list)
+        if not len(names) == len(kinds) == len(files) == len(pos):
+            raise FixtureError(f"{w} names, kinds, toa and positions_m must have the same length")
+        for f in files + [_get(tab, "activity", w, str)]:
+            if not (root / f).is_file():
+                raise FixtureError(f"truth file {root / f} listed in {w} does not exist")
+        sources = tuple(FixtureSource(str(n), str(k), root / f, np.asarray(p, float))
+                        for n, k, f, p in zip(names, kinds, files, pos))
+        activity = root / tab["activity"]
     return Fixture(
         root=root, name=name, description=str(doc.get("description", "")),
         working_rate_hz=int(_get(doc, "working_rate_hz", where, int)),
@@ -266,4 +322,4 @@ def load_fixture(path) -> Fixture:
         truth_clean=truth_paths["clean"], truth_toa=truth_paths["toa"],
         truth_sync=truth_paths["sync"], truth_clean_sync=truth_paths["clean_sync"],
         truth_sync_toa=truth_paths["sync_toa"], truth_source_path=truth_paths["source_path"],
-        credits=dict(doc.get("credits", {})), raw=doc)
+        credits=dict(doc.get("credits", {})), raw=doc, sources=sources, truth_activity=activity)

@@ -98,6 +98,8 @@ class PipelineState:
     offsets: list[np.ndarray] = field(default_factory=list)
     track_id: list[int] = field(default_factory=list)
     speech_probability: list[float] = field(default_factory=list)
+    # tracker only: every confirmed track's TOA per frame (coarse offsets included), for the sources plot
+    source_tracks: dict = field(default_factory=dict)   # id -> {"kind", "time_s": [...], "toa_s": [...]}
 
 
 class Pipeline:
@@ -156,7 +158,7 @@ class Pipeline:
             self.gcc = estimators.NoiseAwareGcc(
                 self.n_devices, n_fft=config.frame_samples, sample_rate_hz=fs, hop_s=config.hop_samples / fs,
                 max_tdoa_s=config.max_tdoa_s, n_peaks=config.n_peaks, weighting=config.gcc_weighting,
-                noise_time_constant_s=config.noise_time_constant_s)
+                noise_time_constant_s=config.noise_time_constant_s, smoothing_time_constant_s=config.gcc_smoothing_s)
             self.estimator = self.tracker = make_estimator(config, self.n_devices, device_names)
             if speech is None:
                 from .speech import make_speech_presence
@@ -268,6 +270,13 @@ class Pipeline:
                                        noise_peaks=self.gcc.noise_peaks if self.gcc.noise_mature else None)
             gated = self.tracker.gated
             track_id = self.tracker.steered_id
+            coarse = block.offsets_samples / fs
+            for t in self.tracker.tracks:
+                if t.kind != "tentative":
+                    h = self.state.source_tracks.setdefault(t.track_id, {"kind": t.kind, "time_s": [], "toa_s": []})
+                    h["kind"] = t.kind
+                    h["time_s"].append(time_s)
+                    h["toa_s"].append(coarse + t.toa_s)
             if track_id < 0:   # no talker tracked: the output is the reference device, not a beam at the noise
                 valid = self._reference_only
                 valid[:] = False

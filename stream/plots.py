@@ -15,7 +15,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 from matplotlib.patches import Patch  # noqa: E402
 import numpy as np  # noqa: E402
 
-__all__ = ["plot_toa_tracks", "plot_segmental_sar"]
+__all__ = ["plot_toa_tracks", "plot_segmental_sar", "plot_source_tracks"]
 
 _DPI = 120
 
@@ -200,4 +200,75 @@ def plot_segmental_sar(
     ax_s.grid(True, axis="y", alpha=0.3)
     ax_s.legend(handles=handles, loc="lower right", fontsize=8, framealpha=0.85)
     ax_s.set_xlim(0.0, max(t[-1] if t.size else 0.0, starts[-1] + seg_s if starts.size else 0.0))
+    return _save(fig, path)
+
+
+def plot_source_tracks(
+    path: str | Path,
+    *,
+    tracks: dict,
+    time_s: np.ndarray,
+    steered_id: np.ndarray,
+    truth: dict | None = None,
+    device_names: Sequence[str] | None = None,
+    max_devices: int = 4,
+    title: str | None = None,
+) -> Path:
+    """Every tracked source over time, the steered one highlighted (the multi-source tracker).
+
+    One panel per device ``1..min(M-1, max_devices)``: its TOA relative to device 0 for every confirmed
+    track (talker tracks in colour, noise tracks grey dashed), the frames in which a track was steered
+    drawn thick in black over it, and, when given, each true source as a dotted line.
+
+    Parameters
+    ----------
+    path : str or Path
+        Output PNG file.
+    tracks : dict
+        ``id -> {"kind": str, "time_s": list, "toa_s": list of (M,) arrays}`` (``PipelineState.source_tracks``).
+    time_s : ndarray, shape (n_frames,), seconds
+        Frame times.
+    steered_id : ndarray, shape (n_frames,), int
+        Steered track per frame (-1: none, the output is the reference device).
+    truth : dict, optional
+        ``name -> (time_s (n,), toa_s (n, M))`` of the true sources (absolute TOAs, same clocks).
+    """
+    import matplotlib.pyplot as plt
+
+    ids = sorted(tracks)
+    m = next((len(tracks[i]["toa_s"][0]) for i in ids if tracks[i]["toa_s"]), 2)
+    n_panels = max(1, min(m - 1, max_devices))
+    names = list(device_names) if device_names is not None else [f"device {i}" for i in range(m)]
+    fig, axes = plt.subplots(n_panels, 1, figsize=(10, 2.2 * n_panels + 0.8), sharex=True, squeeze=False)
+    colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    steer_times = np.asarray(time_s)
+    steered_id = np.asarray(steered_id)
+    for p in range(n_panels):
+        ax = axes[p, 0]
+        d = p + 1
+        if truth:
+            for k, (name, (tt, tv)) in enumerate(truth.items()):
+                ax.plot(tt, 1e3 * (tv[:, d] - tv[:, 0]), ":", color="0.3" if "noise" in name else "k", lw=1.2,
+                        label=f"true {name}" if p == 0 else None)
+        for n_i, tid in enumerate(ids):
+            h = tracks[tid]
+            if not h["toa_s"]:
+                continue
+            t = np.asarray(h["time_s"])
+            v = np.vstack(h["toa_s"])
+            rel = 1e3 * (v[:, d] - v[:, 0])
+            noise = h["kind"] == "noise"
+            ax.plot(t, rel, "--" if noise else "-", color="0.6" if noise else colours[n_i % len(colours)],
+                    lw=0.9, label=(f"track {tid} ({h['kind']})" if p == 0 else None))
+            on = np.isin(t, steer_times[steered_id == tid])
+            if on.any():
+                ax.plot(t, np.where(on, rel, np.nan), "-", color="k", lw=2.6, alpha=0.55,
+                        label=None)
+        ax.set_ylabel(f"{names[d]} - {names[0]}\n(ms)")
+        ax.grid(alpha=0.3)
+    axes[0, 0].plot([], [], "-", color="k", lw=2.6, alpha=0.55, label="steered")
+    axes[0, 0].legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8)
+    axes[-1, 0].set_xlabel("time (s)")
+    fig.suptitle(title or "Tracked sources: relative TOA, steered track thick")
+    fig.subplots_adjust(right=0.76, hspace=0.15)
     return _save(fig, path)

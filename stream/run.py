@@ -306,6 +306,20 @@ def _plots(out: Path, pipeline: Pipeline, fixture: Fixture | None, report: dict,
         plots.plot_toa_tracks(out / "toa_tracks.png", time_s=time_s, toa_s=toa_s, true_time_s=true_t,
                               true_toa_s=true_toa, gated=gated, device_names=dev_names,
                               title=f"Relative TOA ({cfg.estimator})")
+        if pipeline.tracker is not None and pipeline.state.source_tracks:
+            index = [names.index(n) for n in dev_names]
+            truth = None
+            if fixture is not None and fixture.sources:
+                truth = {}
+                for src in fixture.sources:
+                    tv = fixture.source_toa_at(src.name, time_s)
+                    truth[src.name] = (time_s, tv[:, index])
+            tracks = {k: {"kind": h["kind"], "time_s": h["time_s"],
+                          "toa_s": [np.asarray(v)[index] for v in h["toa_s"]]} for k, h in
+                      pipeline.state.source_tracks.items()}
+            plots.plot_source_tracks(out / "sources.png", tracks=tracks, time_s=time_s,
+                                     steered_id=np.asarray(pipeline.state.track_id), truth=truth,
+                                     device_names=dev_names, title="Tracked sources (steered: thick)")
         enhanced = pipeline.enhanced_signal()
         fs = cfg.working_rate_hz
         if fixture is not None and fixture.truth_clean is not None:

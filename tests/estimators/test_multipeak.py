@@ -107,3 +107,26 @@ def test_bad_arguments_raise_at_construction():
     gcc = NoiseAwareGcc(2, n_fft=512, sample_rate_hz=FS, hop_s=0.01, max_tdoa_s=0.01)
     with pytest.raises(ValueError, match="spectra.shape"):
         gcc.process(np.zeros((10, 2), np.complex64), speech_probability=0.0)
+
+
+def test_short_time_smoothing_finds_a_talker_10_db_below_the_noise():
+    """A few frames of cross power averaged before the noise removal (``smoothing_time_constant_s``) give a
+    far steadier talker peak than one frame; the noise average is corrected for its start from zero, so its
+    removal works from the first second on."""
+    x, active, d_noise, d_talk = _two_sources(1, talker_gain=0.3)     # talker 10.5 dB below the noise
+    y_talk = _toa_to_tdoa_samples(d_talk)
+    frames = [k for k in range(40, len(active)) if active[k] and active[k - 4:k + 1].all()]
+    found = {}
+    for tau in (0.0, 0.1):
+        m = x.shape[1]
+        stft = beamform.StreamingStft(m, frame_samples=N_FFT, hop_samples=HOP)
+        gcc = NoiseAwareGcc(m, n_fft=N_FFT, sample_rate_hz=FS, hop_s=HOP / FS, max_tdoa_s=0.004,
+                            smoothing_time_constant_s=tau)
+        out = [gcc.process(stft.process(x[k * HOP:(k + 1) * HOP]), speech_probability=float(active[k]))
+               for k in range(len(active))]
+        top = np.array([out[k][0][:, 0] * FS for k in frames])
+        found[tau] = np.mean(np.abs(top - y_talk) < 0.6)
+    assert found[0.1] > 0.8 and found[0.1] > found[0.0] + 0.3, found
+    with pytest.raises(ValueError, match="smoothing"):
+        NoiseAwareGcc(3, n_fft=N_FFT, sample_rate_hz=FS, hop_s=HOP / FS, max_tdoa_s=0.004,
+                      smoothing_time_constant_s=-1.0)

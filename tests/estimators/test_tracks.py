@@ -124,3 +124,22 @@ def test_bad_arguments_raise():
         SourceTracker(3, frame_period_s=0.01, sample_rate_hz=FS, target="loudest")
     with pytest.raises(ValueError, match="n_devices"):
         SourceTracker(1, frame_period_s=0.01, sample_rate_hz=FS)
+
+
+def test_a_talker_back_after_the_other_keeps_its_track_and_no_track_runs_away():
+    """A speaks 2 s, then B for 6 s (A's track gets no hit: its spread grows), then A again: A's old track must
+    not have jumped onto B's or clutter peaks meanwhile (an old track's gate stays capped), so it picks A up at
+    once; every track's TOA rate stays physical."""
+    rng = np.random.default_rng(7)
+    tr = _tracker()
+    t = 0.0
+    for dur, talker in ((2.0, TALKER_A), (6.0, TALKER_B), (1.0, TALKER_A)):
+        for _ in range(int(dur / DT)):
+            tdoa, value = _peaks([(talker, 0.5)], rng)
+            tr.update(tdoa, value, speech_probability=1.0, usable=USABLE, time_s=t)
+            t += DT
+            for trk in tr.tracks:
+                assert np.all(np.abs(trk.kalman._kf.x[M - 1:]) <= tr.max_rate_s_per_s + 1e-12)
+    a_tracks = [trk for trk in tr.tracks if np.max(np.abs(trk.toa_s - TALKER_A)) < 2.5e-4]
+    assert len(a_tracks) == 1 and a_tracks[0].born_s < 1.0        # the first track, not a new one
+    assert tr.steered is a_tracks[0]

@@ -1,0 +1,362 @@
+#!/usr/bin/env python3
+"""Many varied scenes, seeded: does the engine follow the talker and not the noise?
+
+Run ``python benchmarks/scenes.py [--data ../shared/data] [--jobs 2] [--estimators tracks,kalman]``.
+
+Every scene is simulated with pyroomacoustics by ``replay_fixtures/build_fixtures.py`` (the same code as the
+shipped fixtures: real speech from ``audio/cmu-arctic-16k`` and ``audio/vctk-48k``, band-limited per-device
+clocks, exact timing truth) into a cache folder, replayed through the engine (``stream.run.run_replay``, the
+live path) once per estimator, and scored against its truth.
+
+Scenes (``make_scenes``, 52 by default, seeded by ``--seed``):
+
+- ``noise``: one static talker and one point noise source that starts 2 s before the talker and keeps
+  playing through the pauses; 5 SNRs (0, 5, 10, 20, 30 dB, median over devices) x 4 noise kinds (``dishes``:
+  the Speech Commands kitchen recording; ``white``; ``pink``; ``babble``: six voices from the speech
+  recordings the talker does not use) x 2 layouts (``table``: 4-8 devices on a table, the talker seated at it;
+  ``spread``: 4-8 devices around the room, the talker standing).
+- ``two_talkers``: two talkers at a table take turns (two turns each, 0.3-0.6 s between turns) with a noise
+  source at 10, 20 or 30 dB.
+- ``moving``: a talker walking around the table (0.4-0.9 m/s) with a noise source at 5-30 dB.
+
+Rooms: 4-8 x 3.5-7 x 2.5-3.2 m, Sabine RT60 0.2-0.6 s (image sources up to order 30; the report gives the
+measured RT60). Devices: start offsets 0-1.5 s, drifts -100..100 ppm, gains -4..2 dB, sensor noise -60..-70
+dBFS, one device at 44.1 or 48 kHz in half of the scenes.
+
+Figures per scene and estimator:
+
+- ``si_sdr_db`` of the engine's output, ``oracle_db``: delay-and-sum steered by the active talker's true TOA on
+  the synchronous signals, ``best_single_db``: the best single device (both from ``stream.evaluate``);
+- ``toa_within_0p25ms``: fraction of the active talker's speech frames, from 2 s after the first speech, in
+  which every device's steered TOA is within 0.25 ms of that talker's true TOA;
+- ``noise_steer_s``: seconds of speech frames in which the beam points at the noise source (every device
+  within 0.25 ms of the noise source's TOA);
+- two talkers: ``turn_latency_s`` per turn change, the time until the steered TOA is within 0.25 ms of the new
+  talker for 5 consecutive frames (the turn's length if never).
+
+The final line is one JSON object: per scene kind and SNR, the medians (and the fraction of scenes at least
+as good as the best single device, the worst noise steering), per estimator; and every scene's figures.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import logging
+import math
+import os
+import sys
+import tempfile
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / "replay_fixtures"))
+
+import build_fixtures as bf  # noqa: E402
+
+SNRS = (0, 5, 10, 20, 30)
+NOISES = {"dishes": "audio/speechcommands-noise/doing_the_dishes.wav", "white": "generated:white",
+          "pink": "generated:pink", "babble": "generated:babble"}
+# speakers: (files, credit) - one voice per talker
+SPEAKERS = {
+    "aew": tuple(bf.CMU + f"cmu_arctic_us_aew_a{i:04d}.wav" for i in (1, 2, 3)),
+    "axb": tuple(bf.CMU + f"cmu_arctic_us_axb_a{i:04d}.wav" for i in (4, 5, 6)),
+    "p255": (bf.VCTK + "p255_367.wav",), "p301": (bf.VCTK + "p301_102.wav",),
+    "p314": (bf.VCTK + "p314_272.wav",), "p376": (bf.VCTK + "p376_193.wav",),
+}
+WITHIN_S = 2.5e-4
+SPEECH_START_S = 2.0        # the noise plays alone before this
+SETTLE_S = 2.0              # TOA accuracy counts from this long after the first speech
+HOLD_FRAMES = 5             # turn latency: frames on the new talker in a row
+
+
+# ----------------------------------------------------------------------------- scene design
+def _in_room(rng, dims, margin, z):
+    return (float(rng.uniform(margin, dims[0] - margin)), float(rng.uniform(margin, dims[1] - margin)), z)
+
+
+def _devices(rng, n, positions, *, other_rate):
+    offs = rng.uniform(0.0, 1.5, n)
+    offs[rng.integers(n)] = 0.0
+    devs = []
+    odd = int(rng.integers(1, n)) if other_rate else -1
+    for i in range(n):
+        rate = int(rng.choice([44100, 48000])) if i == odd else 16000
+        devs.append(bf.DeviceSpec(f"dev{i}", rate, round(float(offs[i]), 4),
+                                  round(float(rng.uniform(-100, 100)), 1), round(float(rng.uniform(-4, 2)), 1),
+                                  positions[i], round(float(rng.uniform(-70, -60)), 1)))
+    return tuple(devs)
+
+
+def _far_enough(p, others, d):
+    return all(math.dist(p, q) >= d for q in others)
+
+
+def make_scenes(seed: int = 7) -> list[tuple[str, int, bf.Scene]]:
+    """``(kind, snr_db, scene)`` for every benchmark scene (deterministic for a seed)."""
+    out = []
+    plans = [("noise", snr, noise, layout) for snr in SNRS for noise in NOISES for layout in ("table", "spread")]
+    plans += [("two_talkers", snr, noise, "table") for snr in (10, 20, 30)
+              for noise in ("dishes", "pink", "white")][:8]
+    plans += [("moving", snr, noise, "table") for snr, noise in ((5, "dishes"), (10, "pink"), (20, "babble"),
+                                                                  (30, "white"))]
+    for idx, (kind, snr, noise, layout) in enumerate(plans):
+        rng = np.random.default_rng([seed, idx])
+        dims = (round(float(rng.uniform(4, 8)), 2), round(float(rng.uniform(3.5, 7)), 2),
+                round(float(rng.uniform(2.5, 3.2)), 2))
+        rt60 = round(float(rng.uniform(0.2, 0.6)), 3)
+        n_dev = int(rng.integers(4, 9))
+        centre = (dims[0] / 2 + rng.uniform(-0.5, 0.5), dims[1] / 2 + rng.uniform(-0.5, 0.5))
+        if layout == "table":
+            pos = []
+            while len(pos) < n_dev:
+                r, a = rng.uniform(0.15, 0.9), rng.uniform(0, 2 * math.pi)
+                p = (round(centre[0] + r * math.cos(a), 3), round(centre[1] + r * math.sin(a), 3), 0.75)
+                if _far_enough(p, pos, 0.2):
+                    pos.append(p)
+        else:
+            pos = []
+            while len(pos) < n_dev:
+                p = _in_room(rng, dims, 0.4, round(float(rng.uniform(0.7, 1.5)), 2))
+                p = tuple(round(v, 3) for v in p)
+                if _far_enough(p, pos, 1.0):
+                    pos.append(p)
+
+        def seat():
+            a, r = rng.uniform(0, 2 * math.pi), rng.uniform(1.0, 1.4)
+            return (round(centre[0] + r * math.cos(a), 3), round(centre[1] + r * math.sin(a), 3),
+                    round(float(rng.uniform(1.1, 1.25)), 3))
+
+        talker_pos = seat() if layout == "table" else tuple(round(v, 3) for v in _in_room(rng, dims, 1.0, 1.6))
+        speakers = list(rng.permutation(sorted(SPEAKERS)))
+        spk_a, spk_b = speakers[0], speakers[1]
+        # noise source: >= 1.2 m from the talker(s), >= 0.5 m from the walls
+        while True:
+            npos = tuple(round(v, 3) for v in _in_room(rng, dims, 0.5, round(float(rng.uniform(0.3, 2.0)), 2)))
+            if _far_enough(npos, [talker_pos], 1.2) and _far_enough(npos, pos, 0.3):
+                break
+        fs_load = {f: None for f in SPEAKERS[spk_a]}
+        files_a = SPEAKERS[spk_a][:2]
+        talkers, starts0, path, block = (), (), bf.StaticPath(talker_pos), None
+        duration = SPEECH_START_S + 9.0
+        if kind == "two_talkers":
+            while True:
+                pos_b = seat()
+                if math.dist(pos_b, talker_pos) > 1.2 and _far_enough(npos, [pos_b], 1.2):
+                    break
+            files_a = (files_a * 2)[:2]     # a VCTK voice has one sentence: it says it twice
+            lens_a = [_speech_len(f) for f in files_a]
+            files_b = (SPEAKERS[spk_b][:2] * 2)[:2]
+            lens_b = [_speech_len(f) for f in files_b]
+            t, starts_a, starts_b = 1.0, [], []
+            for k in range(2):
+                starts_a.append(round(t, 3))
+                t += lens_a[k] + rng.uniform(0.3, 0.6)
+                starts_b.append(round(t, 3))
+                t += lens_b[k] + rng.uniform(0.3, 0.6)
+            starts0 = tuple(starts_a)
+            talkers = (bf.TalkerSpec(bf.StaticPath(pos_b), files_b, tuple(starts_b)),)
+            duration = t + 0.3
+        elif kind == "moving":
+            r = 1.2
+            path = bf.ArcPath((round(centre[0], 3), round(centre[1], 3)), r, 1.6,
+                              round(float(rng.uniform(0.4, 0.9)), 2), float(rng.uniform(0, 2 * math.pi)))
+            block = 0.05
+        else:
+            duration = SPEECH_START_S + sum(_speech_len(f) for f in files_a) + 0.3 * (len(files_a) - 1) + 0.5
+        del fs_load
+        name = f"s{idx:02d}_{kind}_{layout}_{noise}_{snr}dB"
+        scene = bf.Scene(
+            name=name, description=f"benchmark scene {name}", sim_rate_hz=16000,
+            duration_s=round(min(duration, 16.0), 2), room_dims_m=dims, sabine_rt60_s=rt60,
+            max_order_cap=12 if kind == "moving" else 30,
+            speech_files=files_a, speech_start_s=1.0 if kind == "two_talkers" else SPEECH_START_S,
+            speech_gap_s=0.3, path=path, devices=_devices(rng, n_dev, pos, other_rate=bool(idx % 2)),
+            noise=bf.NoiseSpec(NOISES[noise], float(rng.uniform(0, 30)) if noise == "dishes" else 0.0,
+                               npos, float(snr)),
+            block_hop_s=block, seed=10_000 + idx, speech_credit="", noise_credit="",
+            talkers=talkers, speech_starts_s=starts0, source_truth=True)
+        out.append((kind, snr, scene))
+    return out
+
+
+_LEN_CACHE: dict[str, float] = {}
+DATA: Path = REPO.parent / "shared" / "data"
+
+
+def _speech_len(f: str) -> float:
+    if f not in _LEN_CACHE:
+        _LEN_CACHE[f] = len(bf._trim_silence(bf._load_mono(DATA / f, 16000), 16000)) / 16000
+    return _LEN_CACHE[f]
+
+
+# ----------------------------------------------------------------------------- scoring
+def _steer_figures(pipeline, fixture) -> dict:
+    """TOA accuracy, noise steering and turn latency of a finished run (module doc)."""
+    time_s, toa_s, _ = pipeline.toa_track()
+    hop_s = pipeline.config.hop_samples / pipeline.config.working_rate_hz
+    steered = np.asarray(pipeline.state.track_id) if pipeline.state.track_id else np.zeros(len(time_s), int)
+    no_beam = steered == -1 if pipeline.tracker is not None else np.zeros(len(time_s), bool)
+    active, speaking = fixture.activity_at(time_s)
+    talkers = [s for s in fixture.sources if not s.is_noise]
+    noise = [s for s in fixture.sources if s.is_noise]
+    err = {}
+    for j, src in enumerate(talkers):
+        truth = fixture.source_toa_at(src.name, time_s)
+        err[j] = np.max(np.abs((toa_s - toa_s[:, :1]) - (truth - truth[:, :1])), axis=1)
+    on_active = np.array([err[a][i] for i, a in enumerate(active)]) <= WITHIN_S
+    on_active &= ~no_beam
+    talking = speaking[np.arange(len(active)), active]
+    first = time_s[np.argmax(speaking.any(axis=1))] if speaking.any() else np.inf
+    scored = talking & (time_s >= first + SETTLE_S)
+    out = {"toa_within_0p25ms": float(np.mean(on_active[scored])) if scored.any() else float("nan"),
+           "no_beam_speech_s": float(np.sum(no_beam & speaking.any(axis=1)) * hop_s)}
+    if noise:
+        truth = fixture.source_toa_at(noise[0].name, time_s)
+        e_n = np.max(np.abs((toa_s - toa_s[:, :1]) - (truth - truth[:, :1])), axis=1)
+        at_noise = (e_n <= WITHIN_S) & ~no_beam & ~on_active
+        out["noise_steer_s"] = float(np.sum(at_noise & speaking.any(axis=1)) * hop_s)
+    changes = np.flatnonzero(np.diff(active) != 0) + 1
+    lat = []
+    for n_c, c in enumerate(changes):
+        end = changes[n_c + 1] if n_c + 1 < len(changes) else len(active)
+        ok = (err[active[c]][c:end] <= WITHIN_S) & ~no_beam[c:end]
+        run, hit = 0, None
+        for i, v in enumerate(ok):
+            run = run + 1 if v else 0
+            if run == HOLD_FRAMES:
+                hit = i - HOLD_FRAMES + 1
+                break
+        lat.append(float((hit if hit is not None else end - c) * hop_s))
+    if len(changes):
+        out["turn_latency_s"] = lat
+    return out
+
+
+def run_scene(args) -> dict:
+    kind, snr, scene, estimators, cache, data, overrides = args
+    logging.disable(logging.WARNING)
+    from stream.config import EngineConfig
+    from stream.fixture import load_fixture
+    from stream.run import run_replay
+    folder = cache / scene.name
+    stamp = folder / "scene.repr"
+    t0 = time.perf_counter()
+    if not (stamp.is_file() and stamp.read_text() == repr(scene)):
+        bf.build(scene, data, cache)
+        stamp.write_text(repr(scene))
+    t_build = time.perf_counter() - t0
+    fixture = load_fixture(folder)
+    row = {"scene": scene.name, "kind": kind, "snr_db": snr, "n_devices": len(scene.devices),
+           "rt60_s": fixture.room.get("rt60_s"), "build_s": round(t_build, 1)}
+    for est in estimators:
+        t0 = time.perf_counter()
+        with tempfile.TemporaryDirectory(prefix="run_", dir=cache) as tmp:
+            res = run_replay([folder], tmp,
+                             config=EngineConfig(estimator=est, progress=False, plots=False, **overrides))
+        enh = res.report["metrics"]["enhancement"]
+        fig = {"si_sdr_db": enh["engine"]["si_sdr_db"], "stoi": enh["engine"]["stoi"],
+               "oracle_db": enh["true_toa_sync_equal"]["si_sdr_db"],
+               "best_single_db": enh["best_single_device"]["si_sdr_db"],
+               **_steer_figures(res.pipeline, fixture), "run_s": round(time.perf_counter() - t0, 1)}
+        row[est] = fig
+    return row
+
+
+# ----------------------------------------------------------------------------- summary
+def summarise(rows: list[dict], estimators: list[str]) -> dict:
+    out = {}
+    for kind in sorted({r["kind"] for r in rows}):
+        out[kind] = {}
+        for snr in sorted({r["snr_db"] for r in rows if r["kind"] == kind}):
+            sel = [r for r in rows if r["kind"] == kind and r["snr_db"] == snr]
+            out[kind][str(snr)] = {"n": len(sel)}
+            for est in estimators:
+                f = [r[est] for r in sel]
+                s = {
+                    "si_sdr_db": np.median([x["si_sdr_db"] for x in f]),
+                    "minus_oracle_db": np.median([x["si_sdr_db"] - x["oracle_db"] for x in f]),
+                    "minus_best_single_db": np.median([x["si_sdr_db"] - x["best_single_db"] for x in f]),
+                    "ge_best_single": np.mean([x["si_sdr_db"] >= x["best_single_db"] for x in f]),
+                    "toa_within_0p25ms": np.nanmedian([x["toa_within_0p25ms"] for x in f]),
+                    "max_noise_steer_s": max(x.get("noise_steer_s", 0.0) for x in f),
+                }
+                lat = [v for x in f for v in x.get("turn_latency_s", [])]
+                if lat:
+                    s["turn_latency_median_s"] = float(np.median(lat))
+                    s["turn_latency_max_s"] = float(np.max(lat))
+                out[kind][str(snr)][est] = {k: round(float(v), 3) for k, v in s.items()}
+    return out
+
+
+def main(argv=None) -> int:
+    global DATA
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--data", type=Path, default=REPO.parent / "shared" / "data",
+                    help="shared data dir holding audio/ (default ../shared/data)")
+    ap.add_argument("--cache", type=Path, default=Path(os.environ.get("TMPDIR", "/tmp")) / "adhoc-array-scenes",
+                    help="built scenes and runs (reused when the scene is unchanged)")
+    ap.add_argument("--estimators", default="tracks,kalman")
+    ap.add_argument("--jobs", type=int, default=2)
+    ap.add_argument("--seed", type=int, default=7)
+    ap.add_argument("--only", default="", help="comma-separated scene kinds or name substrings")
+    ap.add_argument("--limit", type=int, default=0, help="at most this many scenes")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="an EngineConfig option for every run (repeatable), e.g. --set max_tdoa_s=0.025")
+    args = ap.parse_args(argv)
+    DATA = args.data.resolve()
+    if not (DATA / "audio").is_dir():
+        ap.error(f"--data {DATA} has no audio/ folder; pass the shared data dir")
+    estimators = [e for e in args.estimators.split(",") if e]
+    scenes = make_scenes(args.seed)
+    if args.only:
+        keys = args.only.split(",")
+        scenes = [s for s in scenes if s[0] in keys or any(k in s[2].name for k in keys)]
+    if args.limit:
+        scenes = scenes[:args.limit]
+    args.cache.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    overrides = {}
+    for kv in args.set:
+        key, _, value = kv.partition("=")
+        try:
+            overrides[key] = json.loads(value)
+        except json.JSONDecodeError:
+            overrides[key] = value
+    jobs = [(k, snr, sc, estimators, args.cache, DATA, overrides) for k, snr, sc in scenes]
+    rows = []
+    hdr = f"{'scene':38s} {'RT60':>5s} " + " ".join(f"{e:>8s} SI-SDR  TOA%  noise_s" for e in estimators) \
+        + "  oracle  single"
+    print(hdr, flush=True)
+    with ProcessPoolExecutor(max_workers=args.jobs) as pool:
+        for row in pool.map(run_scene, jobs):
+            rows.append(row)
+            e0 = row[estimators[0]]
+            cells = " ".join(f"{'':8s} {row[e]['si_sdr_db']:6.2f} {100 * row[e]['toa_within_0p25ms']:5.0f} "
+                             f"{row[e].get('noise_steer_s', 0):8.2f}" for e in estimators)
+            lat = e0.get("turn_latency_s")
+            print(f"{row['scene']:38s} {row['rt60_s']:5.2f} {cells}  {e0['oracle_db']:6.2f}  "
+                  f"{e0['best_single_db']:6.2f}" + (f"  turns {np.round(lat, 2).tolist()}" if lat else ""),
+                  flush=True)
+    summary = summarise(rows, estimators)
+    for kind, by_snr in summary.items():
+        for snr, s in by_snr.items():
+            print(f"{kind:12s} {snr:>3s} dB (n={s['n']}): " + "; ".join(
+                f"{e}: {s[e]['si_sdr_db']:+.2f} dB, oracle {s[e]['minus_oracle_db']:+.2f}, "
+                f">=single {s[e]['ge_best_single']:.0%}, TOA {s[e]['toa_within_0p25ms']:.0%}, "
+                f"noise max {s[e]['max_noise_steer_s']:.2f} s"
+                + (f", turn {s[e]['turn_latency_median_s']:.2f}/{s[e]['turn_latency_max_s']:.2f} s"
+                   if "turn_latency_median_s" in s[e] else "") for e in estimators))
+    print(json.dumps({"benchmark": "scenes", "seed": args.seed, "n_scenes": len(rows), "overrides": overrides,
+                      "seconds": round(time.perf_counter() - t0, 1), "summary": summary, "scenes": rows},
+                     default=float))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
