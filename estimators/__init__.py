@@ -6,7 +6,7 @@ compiled kernels (GCC-PHAT's inverse FFTs through rocket-fft's numba overloads o
 """
 from .conventions import SPEED_OF_SOUND_M_S, pair_matrix, pairs, ppm_to_ratio, s_to_samples, samples_to_s
 from .gcc import GccPhat, gcc_phat, gcc_phat_spectra
-from .toa import FixedLagKalmanToa, KalmanToa, PinvToa, SubsetToa
+from .toa import FixedLagKalmanToa, KalmanToa, PinvToa, SubsetToa, ToaEstimator
 from .multipeak import NoiseAwareGcc
 from .tracks import SourceTracker, Track
 from .chirps import ChirpTdoas, detect_chirps, extract_tdoas, gcc_phat_delays, linear_chirp, matched_filter
@@ -25,6 +25,7 @@ __all__ = [
     "GccPhat",
     "gcc_phat",
     "gcc_phat_spectra",
+    "ToaEstimator",
     "SubsetToa",
     "PinvToa",
     "KalmanToa",

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import collections
 import math
+from typing import Protocol
 
 import numba
 import numpy as np
@@ -50,8 +51,36 @@ def _check_min_confidence(min_confidence: float) -> float:
     return float(min_confidence)
 
 
+class ToaEstimator(Protocol):
+    """What the stream asks of every relative-TOA estimator (the paper's three, the smoother, the tracker).
+
+    - ``update(tdoa_s, confidence) -> toa_s``: one frame in, the relative TOA (``toa_s[0] = 0``) out;
+    - ``reset()``: forget everything;
+    - ``shift(delta_toa_s, *, delta_rate_s_per_s=None)``: the stream moved a device's coarse alignment
+      (or its clock rate): move the held TOA (and rate) with it, so the steering stays continuous;
+    - ``gated``: the last update rejected its measurement as clutter;
+    - ``initialised``: a TOA is being held or tracked;
+    - ``latency_frames``: the TOA returned by ``update`` is that many frames old (the fixed-lag smoother);
+      the stream delays the audio it steers by as much.
+    """
+
+    gated: bool
+    latency_frames: int
+
+    @property
+    def initialised(self) -> bool: ...
+
+    def update(self, tdoa_s: np.ndarray, confidence: np.ndarray | None = None) -> np.ndarray: ...
+
+    def reset(self) -> None: ...
+
+    def shift(self, delta_toa_s: np.ndarray, *, delta_rate_s_per_s: np.ndarray | None = None) -> None: ...
+
+
 class _PairModel:
     """Shapes, the reduced observation matrix ``H0`` and input checks shared by the estimators."""
+
+    latency_frames = 0   # the TOA of update() is the current frame's
 
     def __init__(self, n_mics: int, min_confidence: float) -> None:
         self.n_mics = _check_n_mics(n_mics)
@@ -125,6 +154,14 @@ class SubsetToa(_PairModel):
         """Forget the held values."""
         self._toa_s = np.zeros(self.n_mics)
 
+    @property
+    def initialised(self) -> bool:
+        return True   # every microphone holds a value (0 before any)
+
+    def shift(self, delta_toa_s: np.ndarray, *, delta_rate_s_per_s: np.ndarray | None = None) -> None:
+        """Move the held values by ``delta_toa_s`` (n_mics,) seconds (there is no rate to move)."""
+        self._toa_s = self._toa_s + np.asarray(delta_toa_s, float) - float(delta_toa_s[0])
+
     def update(self, tdoa_s: np.ndarray, confidence: np.ndarray | None = None) -> np.ndarray:
         """Relative TOA from one TDOA vector.
 
@@ -178,6 +215,13 @@ class PinvToa(_PairModel):
 
     def reset(self) -> None:
         """No state is carried between frames."""
+
+    @property
+    def initialised(self) -> bool:
+        return True
+
+    def shift(self, delta_toa_s: np.ndarray, *, delta_rate_s_per_s: np.ndarray | None = None) -> None:
+        """No state is carried between frames: nothing to move."""
 
     def update(self, tdoa_s: np.ndarray, confidence: np.ndarray | None = None) -> np.ndarray:
         """Relative TOA from one TDOA vector.
@@ -765,7 +809,7 @@ class KalmanToa(_PairModel):
     @property
     def latency_s(self) -> float:
         """Extra output latency in seconds (0 for the filter)."""
-        return 0.0
+        return self.latency_frames * self.frame_period_s
 
     @property
     def initialised(self) -> bool:
@@ -956,9 +1000,10 @@ class FixedLagKalmanToa(KalmanToa):
         super().__init__(n_mics, **kwargs)
 
     @property
-    def latency_s(self) -> float:
-        """Extra output latency in seconds: ``lag_frames * frame_period_s``."""
-        return self.lag_frames * self.frame_period_s
+    def latency_frames(self) -> int:
+        """The TOA of :meth:`update` is this many frames old (the stream delays the audio it steers by as
+        much)."""
+        return self.lag_frames
 
     def reset(self) -> None:
         """Forget the track, the counters and the smoothing window."""

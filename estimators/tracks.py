@@ -123,6 +123,8 @@ class SourceTracker:
         A frame with speech presence at least this is a speech frame.
     """
 
+    latency_frames = 0   # causal: the steered TOA is the current frame's
+
     def __init__(self, n_devices: int, *, frame_period_s: float, sample_rate_hz: float,
                  accel_std_s_per_s2: float = 1e-3, tdoa_std_s: float = 1e-4, gate_probability: float = 0.99,
                  target: TargetPolicy = "active-talker", target_device: int | None = None, max_tracks: int = 8,

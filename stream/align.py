@@ -10,7 +10,9 @@ lines up with the reference's sample ``n``; ``o / working_rate_hz`` is the coars
 """
 from __future__ import annotations
 
+import concurrent.futures
 import logging
+from typing import Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -123,6 +125,23 @@ def refine_offset(x_ref: np.ndarray, x: np.ndarray, *, coarse_samples: int, sear
     return coarse_samples + int(lags[int(np.argmax(vals))])
 
 
+_EXECUTOR: concurrent.futures.ThreadPoolExecutor | None = None
+
+
+def _executor() -> concurrent.futures.ThreadPoolExecutor:
+    global _EXECUTOR
+    if _EXECUTOR is None:
+        _EXECUTOR = concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="align-recheck")
+    return _EXECUTOR
+
+
+def _recheck_offsets(ref: np.ndarray, segments: dict[int, np.ndarray], *, sample_rate_hz: float,
+                     max_offset_s: float) -> dict[int, tuple[int, float]]:
+    """``{device: (offset change in samples, quality)}`` of each segment against the reference's."""
+    return {d: coarse_offset(ref, x, sample_rate_hz=sample_rate_hz, max_offset_s=max_offset_s)
+            for d, x in segments.items()}
+
+
 class _SampleBuffer:
     """Growable float32 buffer: amortised O(1) appends, occasional compaction of the front."""
 
@@ -186,11 +205,15 @@ class Aligner:
         Re-check the offsets on the last ``align_window_s`` of audio every ``recheck_s`` seconds.
     recheck_tolerance_s : float
         A re-check moves a device only if its offset changed by more than this.
+    recheck_delay_s : float
+        A re-check runs in a worker thread (a long correlation must not stall the audio path) and its result
+        is applied this many seconds of stream later, waiting for it only if it is not done by then: live,
+        paced and as-fast-as-possible streams give the same output.
     """
 
     def __init__(self, n_devices: int, *, sample_rate_hz: float, hop_samples: int, align_window_s: float = 8.0,
                  max_offset_s: float = 4.0, min_quality: float = 0.15, recheck_s: float | None = 10.0,
-                 recheck_tolerance_s: float = 0.01) -> None:
+                 recheck_tolerance_s: float = 0.01, recheck_delay_s: float = 0.5) -> None:
         if n_devices < 1:
             raise ValueError(f"{n_devices=} must be >= 1")
         if hop_samples < 1:
@@ -205,6 +228,9 @@ class Aligner:
         self.min_quality = float(min_quality)
         self.recheck_blocks = None if not recheck_s else max(1, int(recheck_s * sample_rate_hz / hop_samples))
         self.recheck_tolerance_samples = int(recheck_tolerance_s * sample_rate_hz)
+        self.recheck_delay_blocks = max(1, int(recheck_delay_s * sample_rate_hz / hop_samples))
+        self._pending: tuple | None = None
+        self._corrected = np.zeros(n_devices, bool)
         self._bufs = [_SampleBuffer() for _ in range(n_devices)]
         self._buf_start = [0] * n_devices     # device sample index of _bufs[d][0]
         self._received = [0] * n_devices
@@ -218,8 +244,12 @@ class Aligner:
         self.messages: list[str] = []
 
     # input -----------------------------------------------------------------------------------
-    def push(self, device_id: int, samples: np.ndarray, flags: FrameFlag = FrameFlag.NONE) -> list[Block]:
-        """Add working-rate samples of one device; return the blocks that became complete."""
+    def push(self, device_id: int, samples: np.ndarray, flags: FrameFlag = FrameFlag.NONE) -> Iterator[Block]:
+        """Add working-rate samples of one device; iterate over the blocks that became complete.
+
+        The blocks are cut one at a time as the caller takes them, so an offset change requested while the
+        caller processes block ``k`` (:meth:`shift`) takes effect at block ``k + 1`` however the input was
+        split into frames: streaming equals batch. Iterate to the end before the next call."""
         if len(samples):
             self._bufs[device_id].append(samples)
             self._received[device_id] += len(samples)
@@ -227,8 +257,8 @@ class Aligner:
             self._ended[device_id] = True
         return self._emit()
 
-    def finish(self) -> list[Block]:
-        """Mark every device as ended and return the remaining blocks."""
+    def finish(self) -> Iterator[Block]:
+        """Mark every device as ended and iterate over the remaining blocks."""
         self._ended = [True] * self.n_devices
         return self._emit()
 
@@ -247,32 +277,51 @@ class Aligner:
                 log.warning(msg)
         self.ready = True
 
-    def _recheck(self) -> None:
+    def _submit_recheck(self) -> None:
+        """Snapshot the last ``align_window_s`` of every device and re-check the offsets in a worker thread;
+        the result is applied ``recheck_delay_blocks`` later (:meth:`_apply_recheck`)."""
         ref_end = self.next_block * self.hop_samples
         ref_start = max(0, ref_end - self.window_samples)
         ref = self._slice(0, ref_start, ref_end)
         if ref is None or np.sqrt(np.mean(ref.astype(np.float64) ** 2)) < SILENCE_RMS:
             return
+        segments = {}
         for d in range(1, self.n_devices):
             o = int(self.offsets_samples[d])
             x = self._slice(d, ref_start + o, ref_end + o)
-            if x is None:
-                continue
-            delta, q = coarse_offset(ref, x, sample_rate_hz=self.sample_rate_hz,
-                                     max_offset_s=min(self.max_offset_s, 0.5 * len(ref) / self.sample_rate_hz))
-            if q < self.min_quality:
+            if x is not None:
+                segments[d] = x
+        max_offset_s = min(self.max_offset_s, 0.5 * len(ref) / self.sample_rate_hz)
+        future = _executor().submit(_recheck_offsets, ref, segments, sample_rate_hz=self.sample_rate_hz,
+                                    max_offset_s=max_offset_s)
+        self._pending = (self.next_block + self.recheck_delay_blocks, self.offsets_samples.copy(), future)
+
+    def _apply_recheck(self) -> None:
+        """Apply a finished re-check (waiting for it if needed: the same result on any machine). A device
+        whose offset moved since the snapshot is left alone."""
+        _, snapshot, future = self._pending
+        self._pending = None
+        for d, (delta, q) in future.result().items():   # a worker's error is raised here, in the stream loop
+            if q < self.min_quality or self.offsets_samples[d] != snapshot[d]:
                 continue
             if not self.aligned[d]:
                 self.aligned[d] = True
                 self.quality[d] = q
-                self.shift(d, delta, reason="device became audible with the reference; aligned now")
+                self.shift(d, delta, reason="device became audible with the reference; aligned now", correction=True)
             elif abs(delta) > self.recheck_tolerance_samples:
-                self.shift(d, delta, reason="periodic re-check of the coarse offset")
+                self.shift(d, delta, reason="periodic re-check of the coarse offset", correction=True)
 
-    def shift(self, device_id: int, delta_samples: int, *, reason: str) -> None:
-        """Move a device's coarse offset by ``delta_samples`` from the next block on."""
+    def shift(self, device_id: int, delta_samples: int, *, reason: str, correction: bool = False) -> None:
+        """Move a device's coarse offset by ``delta_samples`` from the next block on.
+
+        ``correction``: the old offset was wrong (a re-check found the device elsewhere, a calibration repaired
+        it), so the fine TOA tracked under it means nothing: the next block says so (``Block.corrected``) and
+        the stream restarts its TOA estimator. Otherwise (re-centring, a clock-rate change) the total TOA is
+        unchanged and the estimator moves with the offset."""
         if delta_samples == 0:
             return
+        if correction:
+            self._corrected[device_id] = True
         old = int(self.offsets_samples[device_id])
         self.offsets_samples[device_id] = old + int(delta_samples)
         t_s = self.next_block * self.hop_samples / self.sample_rate_hz
@@ -297,14 +346,13 @@ class Aligner:
         reference device's recording."""
         return int(np.ceil(self._received[0] / self.hop_samples))
 
-    def _emit(self) -> list[Block]:
+    def _emit(self) -> Iterator[Block]:
         if not self.ready:
             have = all(self._ended[d] or self._received[d] >= self.window_samples
                        + (int(self.max_offset_s * self.sample_rate_hz) if d else 0) for d in range(self.n_devices))
             if not have:
-                return []
+                return
             self._initial_alignment()
-        blocks = []
         hop = self.hop_samples
         all_ended = all(self._ended)
         while True:
@@ -315,8 +363,10 @@ class Aligner:
                 need = [(k + 1) * hop + self.offsets_samples[d] for d in range(self.n_devices)]
                 if any(not self._ended[d] and self._received[d] < need[d] for d in range(self.n_devices)):
                     break
-            if self.recheck_blocks and k > 0 and k % self.recheck_blocks == 0:
-                self._recheck()
+            if self._pending is not None and k >= self._pending[0]:
+                self._apply_recheck()
+            if self.recheck_blocks and k > 0 and k % self.recheck_blocks == 0 and self._pending is None:
+                self._submit_recheck()
             samples = np.zeros((hop, self.n_devices), np.float32)
             valid = np.zeros(self.n_devices, dtype=bool)
             for d in range(self.n_devices):
@@ -328,11 +378,13 @@ class Aligner:
                 covered = min(start + hop, self._received[d]) - max(start, self._buf_start[d], 0)
                 rms = float(np.sqrt(np.dot(x, x) / hop))
                 valid[d] = bool((self.aligned[d] or d == 0) and covered >= hop // 2 and rms >= SILENCE_RMS)
-            blocks.append(Block(seq=k, first_sample=k * hop, sample_rate_hz=self.sample_rate_hz, samples=samples,
-                                valid=valid, offsets_samples=self.offsets_samples.copy()))
+            corrected = None
+            if self._corrected.any():
+                corrected, self._corrected = self._corrected, np.zeros(self.n_devices, bool)
             self.next_block += 1
             self._trim()
-        return blocks
+            yield Block(seq=k, first_sample=k * hop, sample_rate_hz=self.sample_rate_hz, samples=samples,
+                        valid=valid, offsets_samples=self.offsets_samples.copy(), corrected=corrected)
 
     def _trim(self) -> None:
         keep = self.window_samples + self.hop_samples

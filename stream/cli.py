@@ -1,4 +1,4 @@
-"""Command line: ``adhoc-array replay`` and ``adhoc-array calibrate``.
+"""Command line: ``adhoc-array replay``, ``live``, ``devices`` and ``calibrate``.
 
 Every option of :class:`stream.config.EngineConfig` is a flag of the same name, and can also be
 given in a TOML file (``--config``). Errors the user can fix are printed as one sentence, exit 2.
@@ -84,6 +84,33 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument("--out", required=True, help="output folder")
     rp.add_argument("--config", help="TOML file with engine options")
     _add_engine_options(rp)
+    lp = sub.add_parser("live", help="sound cards in (one device per --input), enhanced audio out, until Ctrl-C",
+                        description="Stream from sound cards, each with its own clock, through the same path as "
+                                    "replay; play the enhanced stream on --output and write the outputs of replay "
+                                    "into --out. Ctrl-C or SIGTERM ends the stream and writes every file.",
+                        epilog="Cards are named by (part of) their name or by index (see: adhoc-array devices); "
+                               "NAME:1,2 takes channels 1 and 2 of a card as one device with two microphones. "
+                               "A card named by several --input is opened once.")
+    lp.add_argument("--input", action="append", required=True, metavar="CARD[:CH,...]",
+                    help="a sound card (one device of the array); repeat for each device, reference first")
+    lp.add_argument("--output", metavar="CARD", help="card that plays the enhanced stream ('default' for the "
+                                                      "system's default output)")
+    lp.add_argument("--out", required=True, help="output folder (enhanced.wav, toa.csv, report.json, plots)")
+    lp.add_argument("--record", metavar="DIR", help="also write every raw input into DIR (replayable: "
+                                                     "adhoc-array replay DIR)")
+    lp.add_argument("--rate", type=float, dest="card_rate_hz", metavar="HZ", help="open every card at this rate (default: each "
+                                                                     "card's default rate)")
+    lp.add_argument("--blocksize", type=int, default=0, help="PortAudio block size in samples (default: the host's)")
+    lp.add_argument("--output-margin-s", type=float, default=0.01,
+                    help="audio queued before the output card plays: a margin against hiccups, paid in latency "
+                         "(default 0.01; 0: lowest latency)")
+    lp.add_argument("--duration", type=float, metavar="S", help="stop after this many seconds of audio from the reference card (default: Ctrl-C)")
+    lp.add_argument("--no-status", dest="status", action="store_false", help="no live status line")
+    lp.add_argument("--config", help="TOML file with engine options")
+    _add_engine_options(lp)
+    sub.add_parser("devices", help="list the sound cards (channels, rates)",
+                   description="List every sound card PortAudio sees, with its channels and default rate; "
+                               "use a part of the name (or the index) with live --input/--output.")
     cp = sub.add_parser(
         "calibrate", help="batch calibration: positions, clock offsets and drifts of the devices",
         description="Solve the array geometry from measured TDOAs (--measurements FILE) or from one recording "
@@ -126,7 +153,8 @@ def summary(report: dict[str, Any], out: Path) -> str:
     lines = []
     st = report.get("stream", {})
     tm = report.get("timing", {})
-    lines.append(f"adhoc-array replay: {report.get('status')}  ->  {out}")
+    lines.append(f"adhoc-array {'live' if report.get('live') else 'replay'}: {report.get('status')}  ->  {out}"
+                 + (f"  (stopped by {report['stopped_by']})" if report.get("stopped_by") else ""))
     if st:
         lines.append(f"  {st['n_devices']} devices at {st['working_rate_hz']:g} Hz, frame {st['frame_samples']} / hop "
                      f"{st['hop_samples']}, {st['audio_s']:.1f} s of audio, output latency "
@@ -165,6 +193,17 @@ def summary(report: dict[str, Any], out: Path) -> str:
                      + (f"; last geometry over {g['n_events']} events" if g else "; no good geometry"))
         for m in cal.get("messages", [])[:4]:
             lines.append(f"  ! {m}")
+    cards = report.get("cards")
+    if cards:
+        lines.append("  cards: " + ", ".join(f"{c['name']} ({c['card']} ch {','.join(map(str, c['channels']))}, "
+                                            f"{c['sample_rate_hz']:g} Hz, {c['n_overflows']} overflows, "
+                                            f"{c['n_gaps']} gaps)" for c in cards["inputs"]))
+        if "output" in cards:
+            o = cards["output"]
+            lines.append(f"  output {o['card']}: {o['n_underflows']} underflows, {o['n_dropped_samples']} samples "
+                         "dropped to stay live")
+        if "recorded_to" in cards:
+            lines.append(f"  raw inputs recorded to {cards['recorded_to']} (adhoc-array replay {cards['recorded_to']})")
     problems = [p for d in report.get("devices", []) for p in d.get("problems", [])]
     for p in problems[:8]:
         lines.append(f"  ! {p}")
@@ -217,6 +256,24 @@ def _run_calibrate(args: argparse.Namespace) -> int:
     return 0 if result["geometry"].converged else 1
 
 
+def _run_live(args: argparse.Namespace) -> int:
+    from .live import run_live
+    try:
+        layers = [(load_toml(args.config), args.config)] if args.config else []
+        layers.append((_overrides(args), "command line"))
+        if args.duration is not None and not args.duration > 0:
+            raise ConfigError(f"--duration {args.duration} must be > 0 seconds")
+        outcome = run_live(args.input, args.out, output=args.output, record=args.record,
+                           sample_rate_hz=args.card_rate_hz, block_samples=args.blocksize, overrides=layers,
+                           status=args.status, max_duration_s=args.duration,
+                           output_margin_s=args.output_margin_s)
+    except AdhocArrayError as err:
+        print(f"adhoc-array: {err}", file=sys.stderr)
+        return 2
+    print(summary(outcome.report, Path(args.out)))
+    return 0 if outcome.report["status"] == "ok" else 1
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -233,6 +290,22 @@ def main(argv: Sequence[str] | None = None) -> int:
             return 2
         print(summary(outcome.report, Path(args.out)))
         return 0 if outcome.report["status"] == "ok" else 1
+    if args.command == "devices":
+        try:
+            from .cards import list_cards
+            cards = list_cards()
+        except AdhocArrayError as err:
+            print(f"adhoc-array: {err}", file=sys.stderr)
+            return 2
+        if not cards:
+            print("adhoc-array: no sound card is visible to PortAudio (no device, or no audio server running).",
+                  file=sys.stderr)
+            return 1
+        for c in cards:
+            print(c.describe())
+        return 0
+    if args.command == "live":
+        return _run_live(args)
     if args.command == "calibrate":
         try:
             return _run_calibrate(args)

@@ -1,4 +1,5 @@
-"""Per-device conditioning: sanitise samples, flag data-quality events, resample to the working rate."""
+"""Per-device conditioning: check the frame's sample index (fill gaps), mix channels down, sanitise samples,
+flag data-quality events, resample to the working rate."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -21,6 +22,49 @@ class DeviceCounters:
     n_clipped_samples: int = 0
     n_silent_blocks: int = 0
     n_blocks: int = 0
+
+
+@dataclass
+class GapCounters:
+    """Sample-index checks of one device (samples at the device's own rate)."""
+
+    n_gaps: int = 0
+    n_gap_samples: int = 0
+    n_overlaps: int = 0
+    n_overlap_samples: int = 0
+
+
+class FrameChecker:
+    """The one stage that reads ``Frame.first_sample``: it checks it against the next expected index of the
+    device, fills a gap with zeros (flagged :attr:`FrameFlag.GAP`: the aligner then leaves the device out of
+    those blocks, so GCC-PHAT and the beamformer skip it) and drops samples that repeat ones already seen.
+    Several channels are mixed down to mono (their mean).
+    """
+
+    def __init__(self) -> None:
+        self.next_sample = 0
+        self.counters = GapCounters()
+
+    def process(self, frame: Frame) -> Frame:
+        """The frame, mono, starting exactly at the next expected sample."""
+        x = frame.samples
+        if x.ndim == 2:
+            x = x[:, 0] if x.shape[1] == 1 else x.mean(axis=1, dtype=np.float32)
+        flags = frame.flags
+        jump = int(frame.first_sample) - self.next_sample
+        c = self.counters
+        if jump > 0:
+            c.n_gaps += 1
+            c.n_gap_samples += jump
+            x = np.concatenate([np.zeros(jump, np.float32), np.asarray(x, np.float32)])
+            flags |= FrameFlag.GAP
+        elif jump < 0:
+            k = min(-jump, len(x))
+            c.n_overlaps += 1
+            c.n_overlap_samples += k
+            x = x[k:]
+        self.next_sample += len(x)
+        return Frame(frame.device_id, frame.seq, self.next_sample - len(x), frame.sample_rate_hz, x, flags)
 
 
 class DeviceConditioner:

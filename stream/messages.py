@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import enum
 from dataclasses import dataclass
+from typing import Iterator, Protocol, Sequence
 
 import numpy as np
 
@@ -20,6 +21,7 @@ class FrameFlag(enum.IntFlag):
     SILENT = enum.auto()         # the block is digital silence
     LAST = enum.auto()           # the device's stream ends with this block
     TRUNCATED = enum.auto()      # the device's file ended early (read error)
+    GAP = enum.auto()            # samples before this block were lost (filled with zeros, left out of the beam)
 
 
 @dataclass(frozen=True)
@@ -36,8 +38,8 @@ class Frame:
         Index of the first sample in the device's own clock, at ``sample_rate_hz``.
     sample_rate_hz : float
         Nominal sample rate of the device.
-    samples : ndarray, shape (n_samples,), float32
-        Mono samples (multi-channel devices are mixed down by the source).
+    samples : ndarray, shape (n_samples,) or (n_samples, n_channels), float32
+        The device's microphones; several channels are mixed down to mono when the stream conditions them.
     flags : FrameFlag
         Data-quality flags.
     """
@@ -68,6 +70,9 @@ class Block:
     offsets_samples : ndarray, shape (n_devices,), int
         Coarse offset applied to each device: device ``i``'s sample ``n + offsets[i]`` was placed at
         reference sample ``n``.
+    corrected : ndarray, shape (n_devices,), bool, or None
+        Devices whose offset changed at this block because the old one was wrong (a re-check, a repair):
+        their fine TOA restarts. None when there is none.
     """
 
     seq: int
@@ -76,6 +81,7 @@ class Block:
     samples: np.ndarray
     valid: np.ndarray
     offsets_samples: np.ndarray
+    corrected: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -107,3 +113,32 @@ class ToaEstimate:
     gated: bool
     track_id: int = -1
     speech_probability: float = float("nan")
+
+
+class Source(Protocol):
+    """What the stream runner reads: replayed files, sound cards, later the network.
+
+    A context manager and an iterator of :class:`Frame` (``with src: for frame in src: ...``), possibly
+    delivering devices at different times and rates. ``active`` lists the devices that stream (their
+    ``device_id`` is their index there), ``devices`` every one asked for (with the problems of those left
+    out). ``stop()`` may be called from a signal handler: the iteration then ends each device's stream with
+    a ``LAST`` frame. ``live`` sources end only by ``stop()``; ``duration_s`` is None for them.
+    """
+
+    live: bool
+    devices: Sequence
+    active: Sequence
+
+    @property
+    def sample_rates_hz(self) -> list[float]: ...
+
+    @property
+    def duration_s(self) -> float | None: ...
+
+    def __enter__(self) -> "Source": ...
+
+    def __exit__(self, *exc) -> None: ...
+
+    def __iter__(self) -> Iterator[Frame]: ...
+
+    def stop(self) -> None: ...

@@ -2,11 +2,12 @@
 
 ::
 
-    Source ─Frame─▶ DeviceConditioner ─▶ Aligner ─Block─▶ StreamingStft ─▶ GccPhat ─TdoaFrame─▶
-        ToaEstimator ─ToaEstimate─▶ DelayAndSum ─▶ sinks (enhanced.wav, toa.csv)
+    Source ─Frame─▶ FrameChecker ─▶ DeviceConditioner ─▶ Aligner ─Block─▶ StreamingStft ─▶ GccPhat ─TdoaFrame─▶
+        ToaEstimator ─ToaEstimate─▶ DelayAndSum ─▶ sinks (enhanced.wav, toa.csv, a sound card), per hop
                       └─ ChirpDetector ─▶ StreamCalibrator (snapshot ─▶ calibrate() in an executor ─▶ Geometry)
 
-Each channel's spectrum is computed once per hop and shared by GCC-PHAT and the beamformer. With a
+``FrameChecker`` is the one stage that reads ``Frame.first_sample``: it fills gaps (flagged; the device is
+left out of those blocks) and drops repeats. Each channel's spectrum is computed once per hop and shared by GCC-PHAT and the beamformer. With a
 calibrator, every device's conditioned stream (its own clock) also goes through a chirp detector, and once per
 block, at the frame boundary, a newly solved geometry is swapped in: each device's resampler gets its clock
 rate (``rate_ratio``) and the aligner its clock offset (:meth:`Pipeline.apply_geometry`).
@@ -27,7 +28,7 @@ from estimators import SPEED_OF_SOUND_M_S
 
 from .align import Aligner, AlignmentEvent
 from .calibration import RetunableConditioner, StreamCalibrator
-from .condition import DeviceCounters
+from .condition import DeviceCounters, FrameChecker
 from .config import EngineConfig
 from .errors import ConfigError
 from .geometry import Geometry
@@ -81,25 +82,79 @@ class StreamCounters:
     n_invalid_device_blocks: int = 0
 
 
+class History(list):
+    """A list for per-frame records that holds at most ``cap`` items however long the stream runs.
+
+    When full, every other item is dropped and from then on only every ``stride``-th append is kept (the
+    stride doubles each time): the record spans the whole stream at a resolution that halves as it grows.
+    Lists appended in lockstep stay in step. ``cap=None`` keeps everything; ``cap=0`` keeps nothing.
+    """
+
+    def __init__(self, cap: int | None = None) -> None:
+        super().__init__()
+        self.cap = cap
+        self.stride = 1
+        self.n_appended = 0
+
+    def append(self, value) -> None:   # noqa: D102 - list.append
+        if self.cap is None:
+            super().append(value)
+        elif self.cap > 0 and self.n_appended % self.stride == 0:
+            super().append(value)
+            if len(self) > self.cap:
+                del self[1::2]
+                self.stride *= 2
+        self.n_appended += 1
+
+
+class HopTimes:
+    """Running distribution of the per-hop processing time (bounded: a histogram of 1 µs bins up to 100 ms)."""
+
+    BIN_MS = 1e-3
+    N_BINS = 100_001
+
+    def __init__(self) -> None:
+        self.counts = np.zeros(self.N_BINS, np.int64)
+        self.n = 0
+        self.max_ms = 0.0
+        self.sum_ms = 0.0
+
+    def add(self, ms: float) -> None:
+        self.counts[min(int(ms / self.BIN_MS), self.N_BINS - 1)] += 1
+        self.n += 1
+        self.sum_ms += ms
+        self.max_ms = max(self.max_ms, ms)
+
+    def percentile(self, q: float) -> float:
+        """The ``q``-th percentile in ms (bin centre; NaN before the first hop)."""
+        if not self.n:
+            return float("nan")
+        k = int(np.searchsorted(np.cumsum(self.counts), q / 100.0 * self.n, side="left"))
+        return (min(k, self.N_BINS - 1) + 0.5) * self.BIN_MS
+
+
 @dataclass
 class PipelineState:
-    """What the pipeline produced so far (kept so that everything can be written out on failure)."""
+    """What the pipeline keeps per frame for the report, the plots and scoring.
 
-    time_s: list[float] = field(default_factory=list)
-    toa_s: list[np.ndarray] = field(default_factory=list)
-    gated: list[bool] = field(default_factory=list)
-    tdoa_s: list[np.ndarray] = field(default_factory=list)
-    confidence: list[np.ndarray] = field(default_factory=list)
-    valid: list[np.ndarray] = field(default_factory=list)
-    weights: list[np.ndarray] = field(default_factory=list)
-    enhanced: list[np.ndarray] = field(default_factory=list)
-    aligned_input: list[np.ndarray] = field(default_factory=list)
-    block_ms: list[float] = field(default_factory=list)
-    offsets: list[np.ndarray] = field(default_factory=list)
-    track_id: list[int] = field(default_factory=list)
-    speech_probability: list[float] = field(default_factory=list)
-    # tracker only: every confirmed track's TOA per frame (coarse offsets included), for the sources plot
-    source_tracks: dict = field(default_factory=dict)   # id -> {"kind", "time_s": [...], "toa_s": [...]}
+    With ``history_cap=None`` (replays of fixtures) every frame is kept; otherwise each list is a
+    :class:`History` of at most that many frames (the enhanced audio and the aligned input, which sinks
+    write out as the stream goes, are then not kept at all): memory stays flat however long the stream runs.
+    """
+
+    history_cap: int | None = None
+    keep_audio: bool = True
+
+    def __post_init__(self) -> None:
+        cap = self.history_cap
+        for name in ("time_s", "toa_s", "gated", "tdoa_s", "confidence", "valid", "weights", "block_ms",
+                     "offsets", "track_id", "speech_probability"):
+            setattr(self, name, History(cap))
+        audio_cap = None if (cap is None and self.keep_audio) else 0
+        self.enhanced = History(audio_cap)
+        self.aligned_input = History(audio_cap)
+        # tracker only: every confirmed track's TOA per frame (coarse offsets included), for the sources plot
+        self.source_tracks: dict = {}   # id -> {"kind", "time_s": History, "toa_s": History}
 
 
 class Pipeline:
@@ -114,13 +169,17 @@ class Pipeline:
     keep_input : bool
         Keep the aligned multi-device input in memory (for metrics against ground truth).
     on_block : callable, optional
-        Called with ``(Block, ToaEstimate, enhanced_hop)`` after each block (sinks).
+        Called with ``(Block, ToaEstimate, enhanced_hop)`` after each block, then with ``(None, None,
+        enhanced_hop)`` for each hop of the beamformer's tail at the end (sinks).
     rate_ratios : sequence of float, optional
         Initial clock correction of every device (``DeviceConditioner.rate_ratio``).
     calibrator : StreamCalibrator, optional
         Periodic recalibration from a chirp beacon (detection per device, solves in a worker, swaps).
     device_names : sequence of str
         Device names (for ``target = "nearest NAME"``).
+    history_cap : int, optional
+        Keep at most this many per-frame records (:class:`History`) and no audio: for long and live streams,
+        whose sinks write as they go. None keeps everything (fixtures, scoring).
     speech : object, optional
         Speech presence per hop for ``estimator = "tracks"`` (``process(samples, valid) -> SpeechFrame``);
         default :func:`stream.speech.make_speech_presence` with ``config.vad``.
@@ -129,7 +188,7 @@ class Pipeline:
     def __init__(self, config: EngineConfig, device_rates_hz: Iterable[float], *, keep_input: bool = False,
                  on_block: Callable[[Block, ToaEstimate, np.ndarray], None] | None = None,
                  rate_ratios: Iterable[float] | None = None, calibrator: StreamCalibrator | None = None,
-                 device_names: Sequence[str] = (), speech=None) -> None:
+                 device_names: Sequence[str] = (), speech=None, history_cap: int | None = None) -> None:
         self.config = config
         rates = list(device_rates_hz)
         self.n_devices = len(rates)
@@ -138,6 +197,7 @@ class Pipeline:
         retune = calibrator is not None and calibrator.apply == "drift"
         self.conditioners = [RetunableConditioner(r, working_rate_hz=fs, rate_ratio=q, keep_history=retune)
                              for r, q in zip(rates, ratios)]
+        self.checkers = [FrameChecker() for _ in rates]
         self.calibrator = calibrator
         self.geometry: Geometry | None = None
         self.geometry_log: list[dict] = []
@@ -176,10 +236,13 @@ class Pipeline:
         self.keep_input = keep_input
         self.on_block = on_block
         self.counters = StreamCounters()
-        self.state = PipelineState()
+        self.state = PipelineState(history_cap=history_cap)
+        self.hop_times = HopTimes()
         self._fine_toa_s = np.zeros(self.n_devices)
         self._last_offsets = np.zeros(self.n_devices, dtype=np.int64)
         self._recent: collections.deque = collections.deque(maxlen=RECENTRE_FRAMES)
+        self._lag = int(self.estimator.latency_frames) if self.estimator is not None else 0
+        self._delayed: collections.deque = collections.deque()
         self.compile_s = self._compile_kernels()
 
     def _compile_kernels(self) -> float:
@@ -210,10 +273,12 @@ class Pipeline:
 
     @property
     def latency_samples(self) -> int:
-        return int(self.das.latency_samples)
+        """Output delay in samples: the beamformer's overlap-add, plus the estimator's lag in hops."""
+        return int(self.das.latency_samples) + self._lag * self.config.hop_samples
 
     def feed(self, frame: Frame) -> None:
         """Process one device frame (all complete blocks it releases go through the chain)."""
+        frame = self.checkers[frame.device_id].process(frame)
         samples, flags = self.conditioners[frame.device_id].process(frame)
         if self.calibrator is not None:
             self.calibrator.observe(frame.device_id, samples, last=bool(flags & FrameFlag.LAST))
@@ -225,6 +290,15 @@ class Pipeline:
         wait: the audio is done)."""
         for block in self.aligner.finish():
             self.process_block(block)
+        fs = self.config.working_rate_hz
+        while self._delayed:   # the last `lag` frames: steered by the newest estimate (none will come)
+            spectra, block, time_s, tdoa, valid = self._delayed.popleft()
+            fine = self._fine_toa_s
+            enhanced = self.das.process_spectra(spectra, fine, valid=valid)
+            toa = ToaEstimate(block.seq, time_s, block.offsets_samples / fs + fine, False, -1, float("nan"))
+            self._record(block, tdoa, toa, enhanced)
+            if self.on_block is not None:
+                self.on_block(block, toa, enhanced)
         if self.calibrator is not None:
             n0 = self.counters.n_blocks * self.config.hop_samples
             geometry = self.calibrator.finish(
@@ -239,12 +313,25 @@ class Pipeline:
                                           "shift_samples": [0] * self.n_devices,
                                           "rate_ratios": [c.rate_ratio for c in self.conditioners],
                                           "note": "solved after the end of the audio"})
-        tail_blocks = -(-self.latency_samples // self.config.hop_samples)
+        tail_blocks = -(-int(self.das.latency_samples) // self.config.hop_samples)
         zeros = np.zeros((self.config.hop_samples, self.n_devices), np.float32)
         toa = self._fine_toa_s
         for _ in range(tail_blocks):
             spectra = self.stft.process(zeros)
-            self.state.enhanced.append(self.das.process_spectra(spectra, toa))
+            enhanced = self.das.process_spectra(spectra, toa)
+            self.state.enhanced.append(enhanced)
+            if self.on_block is not None:
+                self.on_block(None, None, enhanced)
+
+    def _pre_roll(self, block: Block, t0: float) -> None:
+        """The first ``lag`` hops of a lagging estimator: the output is silence (the beamformer's output is
+        ``lag`` hops later; :attr:`latency_samples` includes them) and nothing is recorded yet."""
+        enhanced = np.zeros(self.config.hop_samples, np.float32)
+        self.state.enhanced.append(enhanced)
+        ms = 1e3 * (time.perf_counter() - t0)
+        self.hop_times.add(ms)
+        if self.on_block is not None:
+            self.on_block(None, None, enhanced)
 
     def process_block(self, block: Block) -> None:
         t0 = time.perf_counter()
@@ -273,7 +360,11 @@ class Pipeline:
             coarse = block.offsets_samples / fs
             for t in self.tracker.tracks:
                 if t.kind != "tentative":
-                    h = self.state.source_tracks.setdefault(t.track_id, {"kind": t.kind, "time_s": [], "toa_s": []})
+                    h = self.state.source_tracks.get(t.track_id)
+                    if h is None:
+                        cap = self.state.history_cap
+                        h = self.state.source_tracks[t.track_id] = {"kind": t.kind, "time_s": History(cap),
+                                                                    "toa_s": History(cap)}
                     h["kind"] = t.kind
                     h["time_s"].append(time_s)
                     h["toa_s"].append(coarse + t.toa_s)
@@ -285,16 +376,24 @@ class Pipeline:
             tdoa_s, confidence = self.gcc.process(spectra, valid=block.valid)   # invalid device: confidence 0
             tdoa = TdoaFrame(block.seq, time_s, tdoa_s, confidence)
             fine = self.estimator.update(tdoa.tdoa_s, tdoa.confidence)
-            gated = bool(getattr(self.estimator, "gated", False))
+            gated = bool(self.estimator.gated)
         else:
             tdoa = TdoaFrame(block.seq, time_s, np.zeros(0), np.zeros(0))
             fine, gated = np.zeros(1), False
         self._fine_toa_s = fine
+        if self._lag:   # the estimate is `lag` frames old: steer the spectra of that frame with it
+            self._delayed.append((spectra.copy(), block, time_s, tdoa, valid.copy()))
+            if len(self._delayed) <= self._lag:
+                self._pre_roll(block, t0)
+                return
+            spectra, block, time_s, tdoa, valid = self._delayed.popleft()
         enhanced = self.das.process_spectra(spectra, fine, valid=valid)
         toa = ToaEstimate(block.seq, time_s, block.offsets_samples / fs + fine, gated, track_id, p_speech)
         self._record(block, tdoa, toa, enhanced)
         self._recentre(fine, block)
-        self.state.block_ms.append(1e3 * (time.perf_counter() - t0))
+        ms = 1e3 * (time.perf_counter() - t0)
+        self.state.block_ms.append(ms)
+        self.hop_times.add(ms)
         if self.on_block is not None:
             self.on_block(block, toa, enhanced)
 
@@ -378,7 +477,7 @@ class Pipeline:
             entry["offset_action"][d] = action
             reason = ("calibration: clock rate" if action == "kept" else
                       f"calibration: coarse offset disagreed with the clock offset by {1e3 * acoustic / fs:+.1f} ms")
-            self.aligner.shift(d, delta, reason=reason)
+            self.aligner.shift(d, delta, reason=reason, correction=action == "repaired")
         entry["rate_ratios"] = [c.rate_ratio for c in self.conditioners]
         if repaired and self.estimator is not None:
             self.estimator.reset()
@@ -390,7 +489,7 @@ class Pipeline:
         """A resampler's new rate changes the fine TOA's rate (s/s) the estimator tracks by ``delta_rate``
         (device ``i`` against device 0): move its rate state with it, as :meth:`KalmanToa.shift` does for
         the TOA, so that the change does not look like clutter. Estimators without a rate are left alone."""
-        if hasattr(self.estimator, "shift") and getattr(self.estimator, "initialised", False):
+        if self.estimator.initialised:
             self.estimator.shift(np.zeros(self.n_devices), delta_rate_s_per_s=delta_rate)
 
     # helpers ---------------------------------------------------------------------------------
@@ -415,7 +514,11 @@ class Pipeline:
 
     def _recentre(self, fine_toa_s: np.ndarray, block: Block) -> None:
         """Re-check of the coarse alignment: move a device whose fine TOA has stayed near the GCC
-        search edge (median over the last ``RECENTRE_FRAMES`` frames) by that median."""
+        search edge (median over the last ``RECENTRE_FRAMES`` frames) by that median. Not during the first
+        ``align_window_s`` of the stream: the estimators are starting up (a young track may still slide from a
+        wrong peak to the talker), and the coarse alignment was just measured on that very audio."""
+        if block.first_sample < self.aligner.window_samples:
+            return
         self._recent.append(fine_toa_s)
         limit = 0.5 * self.config.max_tdoa_s
         # checked only on frames whose newest value passes the limit (cheap): when the median
@@ -439,15 +542,17 @@ class Pipeline:
         self._last_offsets = block.offsets_samples.copy()
         if self.estimator is None or not delta.any() or block.seq == 0:
             return
-        delta_s = delta / self.config.working_rate_hz
-        if hasattr(self.estimator, "shift"):
-            self.estimator.shift(-(delta_s - delta_s[0]))
-        else:
+        if block.corrected is not None:   # the old alignment was wrong: what was tracked under it means nothing
             self.estimator.reset()
+            self._recent.clear()
+            return
+        delta_s = delta / self.config.working_rate_hz
+        self.estimator.shift(-(delta_s - delta_s[0]))
 
     # results ---------------------------------------------------------------------------------
     def enhanced_signal(self) -> np.ndarray:
-        """Enhanced output on the reference clock (beamformer latency removed), float32."""
+        """Enhanced output on the reference clock (beamformer latency removed), float32 (empty when the
+        pipeline keeps no audio: ``history_cap`` set)."""
         if not self.state.enhanced:
             return np.zeros(0, np.float32)
         y = np.concatenate(self.state.enhanced)

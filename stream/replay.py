@@ -70,7 +70,7 @@ def open_device_file(path: str | Path, *, name: str | None = None) -> tuple[sf.S
         info.problem(f"Device '{info.name}': {path} holds no samples; it is left out.")
         return None, info
     if info.n_file_channels > 1:
-        log.info("Device '%s': %d channels mixed down to mono.", info.name, info.n_file_channels)
+        log.info("Device '%s': %d channels (mixed down to mono by the stream).", info.name, info.n_file_channels)
     return handle, info
 
 
@@ -110,6 +110,9 @@ class ReplaySource:
         self.devices: list[DeviceInfo] = []
         self._handles: list[sf.SoundFile] = []
         self.active: list[DeviceInfo] = []
+        self._stop = False
+
+    live = False   # a replay ends when its files do; a stop() before that interrupts it
 
     # context manager -------------------------------------------------------------------------
     def __enter__(self) -> "ReplaySource":
@@ -140,6 +143,10 @@ class ReplaySource:
             h.close()
         self._handles = []
 
+    def stop(self) -> None:
+        """End the replay after the current block (safe from a signal handler): every device's stream ends."""
+        self._stop = True
+
     @property
     def sample_rates_hz(self) -> list[float]:
         return [d.sample_rate_hz for d in self.active]
@@ -160,6 +167,14 @@ class ReplaySource:
         tick = 0
         t0 = time.monotonic()
         while not all(ended):
+            if self._stop:
+                for d in range(n_dev):
+                    if not ended[d]:
+                        ended[d] = True
+                        yield Frame(device_id=d, seq=seq[d], first_sample=pos[d],
+                                    sample_rate_hz=self.active[d].sample_rate_hz,
+                                    samples=np.zeros(0, np.float32), flags=FrameFlag.LAST)
+                return
             if self.speed is not None:
                 due = t0 + tick * self.block_s / self.speed
                 delay = due - time.monotonic()
@@ -181,7 +196,7 @@ class ReplaySource:
                     flags |= FrameFlag.TRUNCATED
                     info.problem(f"Device '{info.name}': read error after {pos[d] / rate:.2f} s ({err}); "
                                  "its stream ends there.")
-                samples = data.mean(axis=1, dtype=np.float32) if data.shape[1] > 1 else data[:, 0]
+                samples = data if data.shape[1] > 1 else data[:, 0]   # channels are mixed by the stream
                 last = len(samples) < want or pos[d] + len(samples) >= info.n_file_samples
                 if len(samples) < want and pos[d] + len(samples) < info.n_file_samples and not flags:
                     flags |= FrameFlag.TRUNCATED

@@ -18,7 +18,7 @@ from tqdm import tqdm
 from . import sinks
 from .calibration import CalibrationSnapshot, OdometryLog, StreamCalibrator, load_odometry_csv
 from .config import EngineConfig, merge
-from .errors import InputFileError, StreamError
+from .errors import AdhocArrayError, InputFileError, StreamError
 from .fixture import Fixture, is_fixture_dir, load_fixture
 from .geometry import Geometry
 from .pipeline import Pipeline
@@ -26,8 +26,8 @@ from .replay import ReplaySource
 
 log = logging.getLogger(__name__)
 
-KEEP_INPUT_MAX_S = 600.0   # aligned input is kept in memory for scoring only up to this duration
-FLUSH_BLOCKS = 32          # enhanced.wav and toa.csv are appended every this many blocks
+KEEP_INPUT_MAX_S = 600.0   # every per-frame record and the aligned input are kept (for scoring) only up to this
+HISTORY_CAP = 20_000       # longer and live streams keep at most this many per-frame records (report, plots)
 
 
 @dataclass
@@ -56,16 +56,37 @@ def resolve_inputs(inputs: Sequence[str | Path]) -> tuple[list[Path], list[str] 
         raise InputFileError("No input was given; pass a fixture folder or one audio file per device.")
     if len(inputs) == 1 and Path(inputs[0]).is_dir():
         root = Path(inputs[0])
+        if (root / sinks.RecordingSink.MANIFEST).is_file():
+            return (*_load_recording(root / sinks.RecordingSink.MANIFEST), None)
         if not is_fixture_dir(root):
-            raise InputFileError(f"{root} is a folder without a fixture.toml; pass the audio files themselves.")
+            raise InputFileError(f"{root} is a folder without a fixture.toml or {sinks.RecordingSink.MANIFEST}; "
+                                 "pass the audio files themselves.")
         fixture = load_fixture(root)
         return [d.path for d in fixture.devices], [d.name for d in fixture.devices], fixture
     return [Path(p) for p in inputs], None, None
 
 
+def _load_recording(manifest: Path) -> tuple[list[Path], list[str]]:
+    """Files and names of a folder written by ``adhoc-array live --record``."""
+    try:
+        import tomllib
+    except ModuleNotFoundError:  # Python 3.10
+        import tomli as tomllib
+    try:
+        doc = tomllib.loads(manifest.read_text(encoding="utf-8"))
+        rows = doc["device"]
+        paths = [manifest.parent / str(r["file"]) for r in rows]
+        names = [str(r["name"]) for r in rows]
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError, KeyError, TypeError) as err:
+        raise InputFileError(f"{manifest} is not a valid recording manifest ({type(err).__name__}: {err}).") from None
+    if not paths:
+        raise InputFileError(f"{manifest} lists no device.")
+    return paths, names
+
+
 def make_calibrator(cfg: EngineConfig, n_devices: int, out: Path, *, device_names: Sequence[str] = (),
                     solver: Callable[[CalibrationSnapshot], Geometry] | None = None,
-                    on_geometry: Callable[[Geometry], None] | None = None) -> StreamCalibrator | None:
+                    on_geometry: Callable[[Geometry], None] | None = None, live: bool = False) -> StreamCalibrator | None:
     """The stream's calibrator from the resolved options (None when ``calibration_odometry`` is unset).
 
     Every adopted geometry is written to ``out/geometry.json`` (atomically) and then handed to
@@ -94,7 +115,17 @@ def make_calibrator(cfg: EngineConfig, n_devices: int, out: Path, *, device_name
         threshold=cfg.chirp_threshold, solver=solver, on_geometry=publish, executor=cfg.calibration_executor,
         max_events=cfg.calibration_max_events, device_names=device_names,
         # unpaced replay: adopt solves at fixed stream times (reproducible); paced (fake live): never wait
-        replay_latency_s=cfg.calibration_replay_latency_s if cfg.speed is None else None)
+        replay_latency_s=cfg.calibration_replay_latency_s if (cfg.speed is None and not live) else None)
+
+
+def _layered(cfg: EngineConfig, fixture: Fixture | None,
+             overrides: Sequence[tuple[dict[str, Any], str]]) -> EngineConfig:
+    if fixture is not None:
+        engine = {"working_rate_hz": fixture.working_rate_hz, **fixture.raw.get("engine", {})}
+        cfg = merge(cfg, engine, source=f"{fixture.root}/fixture.toml [engine]")
+    for values, source in overrides:
+        cfg = merge(cfg, values, source=source)
+    return cfg
 
 
 def run_replay(inputs: Sequence[str | Path], out_dir: str | Path, *, config: EngineConfig | None = None,
@@ -106,34 +137,73 @@ def run_replay(inputs: Sequence[str | Path], out_dir: str | Path, *, config: Eng
     Parameters
     ----------
     inputs : sequence of path
-        A fixture folder, or one audio file per device (the first usable one is the reference).
+        A fixture folder, a recorded folder (``adhoc-array live --record``), or one audio file per device
+        (the first usable one is the reference).
     out_dir : path
         Created if needed; receives enhanced.wav, toa.csv, report.json and PNG plots.
     config : EngineConfig, optional
         Base options (defaults when None). A fixture's ``[engine]`` table applies on top of it,
         then each ``(values, source)`` of ``overrides`` in order (a config file, then the CLI).
     """
+    paths, names, fixture = resolve_inputs(inputs)
+    cfg = _layered(config or EngineConfig(), fixture, overrides)
+    source = ReplaySource(paths, block_s=cfg.block_s, speed=cfg.speed, names=names)
+    return run_stream(source, out_dir, config=cfg, fixture=fixture, names=names, solver=solver,
+                      on_geometry=on_geometry, speech=speech)
+
+
+def run_stream(source, out_dir: str | Path, *, config: EngineConfig, fixture: Fixture | None = None,
+               names: Sequence[str] | None = None, solver: Callable[[CalibrationSnapshot], Geometry] | None = None,
+               on_geometry: Callable[[Geometry], None] | None = None, speech=None,
+               on_frame: Callable[[Any], None] | None = None, on_hop: Callable[[np.ndarray], None] | None = None,
+               status: Callable[[Pipeline], None] | None = None, status_every_s: float = 1.0,
+               history_cap: int | None = None, extra_report: Callable[[dict], None] | None = None,
+               on_end: Callable[[], None] | None = None,
+               handle_signals: bool = True) -> RunOutcome:
+    """The one stream loop of replay and live: a :class:`~stream.messages.Source` through the pipeline into the
+    sinks (enhanced.wav, toa.csv, written per hop), then report.json and plots.
+
+    Parameters
+    ----------
+    source : Source
+        Not yet opened; opened and closed here.
+    on_frame : callable, optional
+        Every raw frame, before the pipeline (``--record``).
+    on_hop : callable, optional
+        Every enhanced hop as it is produced (a sound card).
+    status : callable, optional
+        Called with the pipeline every ``status_every_s`` seconds of wall time (a live status line).
+    history_cap : int, optional
+        Per-frame records kept for the report and plots (:class:`stream.pipeline.History`). None: everything
+        for sources of at most ``KEEP_INPUT_MAX_S``, else ``HISTORY_CAP``; negative: everything, always.
+    extra_report : callable, optional
+        Adds to the report before it is written (sound-card counters).
+    on_end : callable, optional
+        Called once the source has ended and the pipeline has flushed (before the report is written).
+    handle_signals : bool
+        SIGINT and SIGTERM stop the source (what was captured is processed and written); a second one
+        interrupts at once (still writing what was produced).
+    """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    paths, names, fixture = resolve_inputs(inputs)
-    cfg = config or EngineConfig()
-    if fixture is not None:
-        engine = {"working_rate_hz": fixture.working_rate_hz, **fixture.raw.get("engine", {})}
-        cfg = merge(cfg, engine, source=f"{fixture.root}/fixture.toml [engine]")
-    for values, source in overrides:
-        cfg = merge(cfg, values, source=source)
+    cfg = config
     collector = _Collector()
     logging.getLogger().addHandler(collector)
     t_wall0, t_cpu0 = time.perf_counter(), time.process_time()
-    report: dict[str, Any] = {"status": "ok", "inputs": [str(p) for p in paths]}
+    paths = [d.path for d in getattr(source, "devices", [])] or []
+    report: dict[str, Any] = {"status": "ok", "inputs": [], "live": bool(getattr(source, "live", False))}
     pipeline = None
     calibrator = None
     wav = csv_sink = None
+    stopped: list[str] = []
+    restore = _install_stop_handlers(source, stopped) if handle_signals else (lambda: None)
     try:
-        with ReplaySource(paths, block_s=cfg.block_s, speed=cfg.speed, names=names) as src:
+        with source as src:
+            report["inputs"] = [d.path for d in src.devices]
             report["devices"] = [vars(d) for d in src.devices]
             if not src.active:
-                raise StreamError(f"None of the {len(paths)} input files could be read; nothing to stream.")
+                what = "inputs" if src.live else "input files"
+                raise StreamError(f"None of the {len(src.devices)} {what} could be read; nothing to stream.")
             ref_rate = src.active[0].sample_rate_hz
             cfg = cfg.resolved(ref_rate)
             for info in src.active:
@@ -142,59 +212,126 @@ def run_replay(inputs: Sequence[str | Path], out_dir: str | Path, *, config: Eng
                              cfg.working_rate_hz)
             if len(src.active) == 1:
                 log.warning("Only one device delivers audio; the output is that device's signal and every TOA is 0.")
-            keep = fixture is not None and src.duration_s <= KEEP_INPUT_MAX_S
+            duration = src.duration_s
+            if history_cap is None and (duration is None or duration > KEEP_INPUT_MAX_S):
+                history_cap = HISTORY_CAP
+            elif history_cap is not None and history_cap < 0:   # keep everything, whatever the length
+                history_cap = None
+            keep = fixture is not None and history_cap is None
             calibrator = make_calibrator(cfg, len(src.active), out, device_names=[d.name for d in src.active],
-                                         solver=solver, on_geometry=on_geometry)
+                                         solver=solver, on_geometry=on_geometry, live=report["live"])
             pipeline = Pipeline(cfg, src.sample_rates_hz, keep_input=keep, calibrator=calibrator,
-                                device_names=[d.name for d in src.active], speech=speech)
+                                device_names=[d.name for d in src.active], speech=speech, history_cap=history_cap)
             wav = sinks.WavSink(out / "enhanced.wav", sample_rate_hz=cfg.working_rate_hz,
                                 skip_samples=pipeline.latency_samples)
             csv_sink = sinks.ToaCsvSink(out / "toa.csv", [d.name for d in src.active],
                                         tracks=pipeline.tracker is not None)
-            written = [0]
 
-            def flush_outputs() -> None:
-                st = pipeline.state
-                for k in range(written[0], len(st.enhanced)):
-                    wav.write(st.enhanced[k])
-                for k in range(csv_sink.n_rows, len(st.time_s)):
-                    csv_sink.write(st.time_s[k], st.toa_s[k], st.gated[k], st.track_id[k], st.speech_probability[k])
-                written[0] = len(st.enhanced)
+            def write_hop(block, toa, enhanced) -> None:
+                wav.write(enhanced)
+                if toa is not None:
+                    csv_sink.write_estimate(toa)
+                if on_hop is not None:
+                    on_hop(enhanced)
 
-            # write out every FLUSH_BLOCKS blocks: few, larger writes; at most that much is lost on a hard kill
-            pipeline.on_block = lambda block, *_: flush_outputs() if block.seq % FLUSH_BLOCKS == 0 else None
-            bar = tqdm(total=round(src.duration_s, 2), unit="s", desc="replay", disable=None if cfg.progress else True,
+            pipeline.on_block = write_hop
+            bar = tqdm(total=round(duration or 0.0, 2), unit="s", desc="replay",
+                       disable=None if (cfg.progress and duration is not None and status is None) else True,
                        leave=False, bar_format="{l_bar}{bar}| {n:.1f}/{total:.1f} s [{elapsed}<{remaining}]")
+            next_status = time.perf_counter() + status_every_s
             try:
                 for frame in src:
+                    if on_frame is not None:
+                        on_frame(frame)
                     pipeline.feed(frame)
-                    if frame.device_id == 0:
+                    if frame.device_id == 0 and duration is not None:
                         bar.update(min(len(frame.samples) / frame.sample_rate_hz, bar.total - bar.n))
+                    if status is not None and time.perf_counter() >= next_status:
+                        next_status += status_every_s
+                        status(pipeline)
                 pipeline.finish()
+                if on_end is not None:
+                    on_end()
             finally:
                 bar.close()
             wav.max_samples = pipeline.counters.n_blocks * cfg.hop_samples
-            flush_outputs()
+        if stopped:
+            how = " and ".join(stopped)
+            report["stopped_by"] = how
+            if not report["live"]:
+                report["status"] = "interrupted"
+                report["error"] = f"Stopped by {how}; everything produced so far was written out."
     except KeyboardInterrupt:
         report["status"] = "interrupted"
         report["error"] = "Interrupted by the user; everything produced so far was written out."
     except Exception as err:  # noqa: BLE001 - the run must write out what it produced, then re-raise
         report["status"] = "failed"
         report["error"] = f"{type(err).__name__}: {err}"
-        log.error("The stream stopped: %s", err)
-        if pipeline is not None and wav is not None:
-            try:
-                flush_outputs()
-            except Exception:  # noqa: BLE001
-                pass
+        if not isinstance(err, AdhocArrayError):   # the engine's own errors are one sentence for the caller
+            log.error("The stream stopped: %s", err)
+        restore()
         if calibrator is not None:
             calibrator.close()
+        if extra_report is not None:
+            extra_report(report)
         _finalise(report, out, cfg, pipeline, fixture, names, paths, collector, t_wall0, t_cpu0, wav, csv_sink)
         raise
+    restore()
     if calibrator is not None:
         calibrator.close()
+    if extra_report is not None:
+        extra_report(report)
     _finalise(report, out, cfg, pipeline, fixture, names, paths, collector, t_wall0, t_cpu0, wav, csv_sink)
     return RunOutcome(report, pipeline, out)
+
+
+def _install_stop_handlers(source, stopped: list[str]) -> Callable[[], None]:
+    """SIGINT/SIGTERM: the first stops the source (the stream ends cleanly with what it has), a second one
+    raises KeyboardInterrupt. Only in the main thread; returns a function that restores the old handlers."""
+    import signal
+    import threading
+    if threading.current_thread() is not threading.main_thread():
+        return lambda: None
+    old = {}
+
+    def handler(signum, _frame) -> None:
+        name = signal.Signals(signum).name
+        if stopped:
+            raise KeyboardInterrupt
+        stopped.append(name)
+        log.info("%s: stopping the stream; what was captured is processed and written.", name)
+        source.stop()
+
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        old[sig] = signal.signal(sig, handler)
+
+    def restore() -> None:
+        for sig, h in old.items():
+            signal.signal(sig, h)
+    return restore
+
+
+def observed_drift_ppm(time_s: np.ndarray, toa_s: np.ndarray, gated: np.ndarray, *,
+                       min_span_s: float = 20.0) -> np.ndarray:
+    """Each device's clock drift against the reference as the stream saw it: the slope of its relative TOA
+    (coarse offset + fine estimate) over time, by least squares over the frames that were not gated, in ppm
+    (``1e6 * d toa / d t``; a talker walking also moves it, by at most ~3000 ppm at 1 m/s). NaN when the
+    stream is shorter than ``min_span_s`` (a slope over a few seconds says more about the talker).
+
+    Returns
+    -------
+    ndarray, shape (n_devices,)
+    """
+    n_dev = toa_s.shape[1] if toa_s.ndim == 2 else 0
+    out = np.full(n_dev, np.nan)
+    ok = ~np.asarray(gated, bool)
+    if n_dev == 0 or ok.sum() < 10 or np.ptp(time_s[ok]) < min_span_s:
+        return out
+    t = time_s[ok] - time_s[ok].mean()
+    y = toa_s[ok] - toa_s[ok].mean(axis=0)
+    out[:] = 1e6 * (t @ y) / (t @ t)
+    out[0] = 0.0
+    return out
 
 
 def _finalise(report, out, cfg, pipeline, fixture, names, paths, collector, t_wall0, t_cpu0, wav, csv_sink) -> None:
@@ -209,7 +346,7 @@ def _finalise(report, out, cfg, pipeline, fixture, names, paths, collector, t_wa
         fs = cfg.working_rate_hz
         n_blocks = pipeline.counters.n_blocks
         audio_s = n_blocks * cfg.hop_samples / fs
-        block_ms = np.asarray(pipeline.state.block_ms) if pipeline.state.block_ms else np.zeros(1)
+        ht = pipeline.hop_times
         report["stream"] = {
             "n_devices": pipeline.n_devices,
             "working_rate_hz": fs,
@@ -227,11 +364,17 @@ def _finalise(report, out, cfg, pipeline, fixture, names, paths, collector, t_wa
             "alignment_quality": pipeline.aligner.quality.tolist(),
             "aligned": pipeline.aligner.aligned.tolist(),
             "alignment_events": [vars(e) for e in pipeline.alignment_events],
-            "final_channel_weights": (pipeline.state.weights[-1].tolist() if pipeline.state.weights else []),
+            "final_channel_weights": np.asarray(pipeline.das.channel_weights, float).tolist(),
+            "observed_drift_ppm": observed_drift_ppm(*pipeline.toa_track()).tolist(),
         }
         active = [d for d in report.get("devices", []) if d["usable"]]
-        for info, counters in zip(active, pipeline.device_counters):
+        for info, counters, checker in zip(active, pipeline.device_counters, pipeline.checkers):
             info.update(vars(counters))
+            info.update(vars(checker.counters))
+            if checker.counters.n_gaps:
+                info["problems"].append(f"Device '{info['name']}': {checker.counters.n_gap_samples} samples were "
+                                        f"lost in {checker.counters.n_gaps} gaps (filled with zeros and left out "
+                                        "of the beam).")
             if counters.n_nan_samples:
                 info["problems"].append(f"Device '{info['name']}': {counters.n_nan_samples} non-finite samples "
                                         "were replaced by zeros.")
@@ -245,10 +388,13 @@ def _finalise(report, out, cfg, pipeline, fixture, names, paths, collector, t_wa
             "wall_s": wall_s,
             "cpu_s": cpu_s,
             "real_time_factor": wall_s / audio_s if audio_s else None,
-            "block_ms_median": float(np.median(block_ms)),
-            "block_ms_p95": float(np.percentile(block_ms, 95)),
+            "block_ms_median": ht.percentile(50),
+            "block_ms_p95": ht.percentile(95),
+            "block_ms_p99": ht.percentile(99),
+            "block_ms_p999": ht.percentile(99.9),
+            "block_ms_max": ht.max_ms,
             "hop_ms": 1e3 * cfg.hop_samples / fs,
-            "cpu_fraction_of_one_core": float(np.median(block_ms) / (1e3 * cfg.hop_samples / fs)),
+            "cpu_fraction_of_one_core": ht.percentile(50) / (1e3 * cfg.hop_samples / fs),
             "kernel_compile_s": pipeline.compile_s,   # numba: compile or cache load before the first block
         }
         if pipeline.tracker is not None:

@@ -23,16 +23,21 @@ class WavSink:
         the reference device.
     max_samples : int or None
         Samples written at most (the tail of the beamformer flush beyond the input is dropped).
+    buffer_samples : int
+        Samples gathered before each write to the file (few, larger writes; at most this much is lost on a
+        hard kill; :meth:`flush` and :meth:`close` write the rest).
     """
 
     def __init__(self, path: str | Path, *, sample_rate_hz: float, skip_samples: int = 0,
-                 max_samples: int | None = None) -> None:
+                 max_samples: int | None = None, buffer_samples: int = 8192) -> None:
         self.path = Path(path)
         self._file = sf.SoundFile(str(self.path), "w", samplerate=int(round(sample_rate_hz)), channels=1,
                                   subtype="FLOAT")
         self._skip = int(skip_samples)
         self.max_samples = max_samples
-        self.n_written = 0
+        self.n_written = 0          # samples accepted (written or buffered)
+        self._buf = np.zeros(max(1, int(buffer_samples)), np.float32)
+        self._n_buf = 0
 
     def write(self, samples: np.ndarray) -> None:
         x = np.asarray(samples, np.float32)
@@ -41,13 +46,98 @@ class WavSink:
             x, self._skip = x[k:], self._skip - k
         if self.max_samples is not None:
             x = x[: max(0, self.max_samples - self.n_written)]
-        if len(x):
-            self._file.write(x)
-            self.n_written += len(x)
+        if not len(x):
+            return
+        self.n_written += len(x)
+        if self._n_buf + len(x) > len(self._buf):
+            self.flush()
+            if len(x) > len(self._buf):
+                self._file.write(x)
+                return
+        self._buf[self._n_buf:self._n_buf + len(x)] = x
+        self._n_buf += len(x)
+
+    def flush(self) -> None:
+        if self._n_buf and not self._file.closed:
+            self._file.write(self._buf[:self._n_buf])
+            self._n_buf = 0
+            self._file.flush()
 
     def close(self) -> None:
         if not self._file.closed:
+            self.flush()
             self._file.close()
+
+
+class RecordingSink:
+    """Writes every device's raw input (its own rate, its channels, its own clock) into a folder that
+    ``adhoc-array replay DIR`` accepts unchanged: one float WAV per device and ``recording.toml`` naming them
+    in device order. A gap in a device's stream (lost samples) is written as zeros, so each file stays on
+    the device's clock.
+    """
+
+    MANIFEST = "recording.toml"
+
+    def __init__(self, folder: str | Path, devices: Sequence[Any], *, description: str = "") -> None:
+        self.folder = Path(folder)
+        self.folder.mkdir(parents=True, exist_ok=True)
+        self.devices = list(devices)
+        self.description = description
+        self._files: list[sf.SoundFile | None] = [None] * len(self.devices)
+        self._next = [0] * len(self.devices)
+        self.n_gap_samples = [0] * len(self.devices)
+        self.file_names = [f"dev{k:02d}_{_safe(getattr(d, 'name', str(k)))}.wav" for k, d in enumerate(self.devices)]
+        self._write_manifest()
+
+    def write(self, frame) -> None:
+        """Append one frame (``Frame.samples`` of shape (n,) or (n, n_channels))."""
+        d = frame.device_id
+        x = np.asarray(frame.samples, np.float32)
+        x2 = x[:, None] if x.ndim == 1 else x
+        f = self._files[d]
+        if f is None:
+            f = self._files[d] = sf.SoundFile(str(self.folder / self.file_names[d]), "w",
+                                              samplerate=int(round(frame.sample_rate_hz)),
+                                              channels=max(1, x2.shape[1]), subtype="FLOAT")
+        gap = int(frame.first_sample) - self._next[d]
+        if gap > 0:
+            f.write(np.zeros((gap, f.channels), np.float32))
+            self.n_gap_samples[d] += gap
+        elif gap < 0:
+            x2 = x2[-gap:]
+        if len(x2):
+            f.write(x2)
+        self._next[d] = max(self._next[d], int(frame.first_sample) + len(x))
+
+    def _write_manifest(self) -> None:
+        lines = ["# adhoc-array recording: one raw file per device, each in its own clock.",
+                 "# Replay it with: adhoc-array replay " + str(self.folder), "",
+                 f"description = {json.dumps(self.description)}", ""]
+        for k, d in enumerate(self.devices):
+            lines += ["[[device]]", f"name = {json.dumps(str(getattr(d, 'name', k)))}",
+                      f"file = {json.dumps(self.file_names[k])}"]
+            rate = getattr(d, "sample_rate_hz", float("nan"))
+            if rate == rate:
+                lines.append(f"sample_rate_hz = {float(rate)!r}")
+            for key in ("card", "channels"):
+                if getattr(d, key, None):
+                    lines.append(f"{key} = {json.dumps(getattr(d, key))}")
+            lines.append("")
+        (self.folder / self.MANIFEST).write_text("\n".join(lines), encoding="utf-8")
+
+    def close(self) -> None:
+        for k, f in enumerate(self._files):
+            if f is not None and not f.closed:
+                f.close()
+            elif f is None:   # a device that delivered nothing still gets a (valid, empty) file
+                rate = getattr(self.devices[k], "sample_rate_hz", 16000.0)
+                rate = rate if rate == rate else 16000.0
+                sf.SoundFile(str(self.folder / self.file_names[k]), "w", samplerate=int(round(rate)), channels=1,
+                             subtype="FLOAT").close()
+
+
+def _safe(name: str) -> str:
+    return "".join(ch if ch.isalnum() or ch in "-_." else "_" for ch in name)[:40] or "device"
 
 
 class ToaCsvSink:
@@ -69,6 +159,10 @@ class ToaCsvSink:
         self.n_rows += 1
         if self.n_rows % 256 == 0:
             self._fh.flush()
+
+    def write_estimate(self, toa) -> None:
+        """One row from a :class:`~stream.messages.ToaEstimate`."""
+        self.write(toa.time_s, toa.toa_s, toa.gated, toa.track_id, toa.speech_probability)
 
     def close(self) -> None:
         if not self._fh.closed:

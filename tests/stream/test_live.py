@@ -1,0 +1,284 @@
+"""Live sound cards through a real JACK dummy server (PortAudio's JACK host API), no mocks.
+
+The server runs with an exact clock at 16 kHz with 128-sample periods; a patch bay client plays known signals
+into the engine's capture ports and records its output. Skipped only where the server cannot start.
+"""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import soundfile as sf
+
+from stream import metrics
+from stream.errors import AudioDeviceError, StreamError
+from stream.fixture import load_fixture
+
+from tests.conftest import REPO_FIXTURES
+
+RATE = 16000
+
+
+@pytest.fixture(scope="module")
+def jack():
+    from stream.jack_dummy import jack_dummy_server
+    try:
+        with jack_dummy_server(sample_rate_hz=RATE, period_samples=128, n_channels=8) as server:
+            yield server
+    except AudioDeviceError as err:
+        pytest.skip(f"no JACK dummy server here: {err}")
+
+
+@pytest.fixture
+def bay(jack):
+    from stream.jack_dummy import PatchBay
+    b = PatchBay(jack, n_outputs=8, n_inputs=1, record_s=30.0)
+    yield b
+    b.close()
+
+
+def _feed(bay, signal_: np.ndarray, n_inputs: int, *, client: str = "PortAudio", output: bool = False) -> threading.Thread:
+    """In a thread: wire bay:out_k to the engine's in_k once its ports exist, play, then wire its output."""
+    def run():
+        ins = bay.wait_ports(rf"{client}:in_", n_inputs, is_input=True)
+        for k, port in enumerate(ins):
+            bay.rewire(f"bay:out_{k + 1}", port)
+        bay.play(signal_)
+        if output:
+            out = bay.wait_ports(rf"{client}:out_", 1, is_output=True, timeout_s=30.0)
+            bay.rewire(out[0], "bay:in_1")
+    t = threading.Thread(target=run, daemon=True)
+    t.start()
+    return t
+
+
+def _lead(x: np.ndarray) -> int:
+    nz = np.flatnonzero(np.any(x != 0, axis=1) if x.ndim == 2 else x != 0)
+    return int(nz[0]) if len(nz) else len(x)
+
+
+def test_devices_lists_the_jack_card(jack, capsys):
+    from stream.cli import main
+    assert main(["devices"]) == 0
+    out = capsys.readouterr().out
+    assert "system (JACK Audio Connection Kit): 8 in, 8 out, 16000 Hz" in out
+
+
+def test_capture_of_a_multichannel_signal_is_bit_exact(jack, bay):
+    """A 3-channel device and a device of channels 5,6 of the same card (opened once): every sample, in order."""
+    from stream.cards import CardSource
+    rng = np.random.default_rng(3)
+    sig = (0.2 * rng.standard_normal((RATE, 6))).astype(np.float32)
+    frames: dict[int, list] = {0: [], 1: []}
+    firsts: dict[int, list] = {0: [], 1: []}
+    with CardSource(["system:1,2,3", "system:5,6"], max_duration_s=2.0) as src:
+        assert len(src._cards) == 1 and src._cards[0].n_channels == 6
+        _feed(bay, sig, 6)
+        for f in src:
+            frames[f.device_id].append(f.samples)
+            firsts[f.device_id].append(f.first_sample)
+    a, b = np.concatenate(frames[0]), np.concatenate(frames[1])
+    assert a.shape[1] == 3 and b.shape[1] == 2 and len(a) == len(b) >= 2 * RATE
+    starts = np.cumsum([0] + [len(x) for x in frames[0][:-1]])
+    np.testing.assert_array_equal(firsts[0], starts)          # contiguous stamps, no gap
+    lead = _lead(a)
+    assert lead == _lead(b) and lead + RATE <= len(a)
+    assert np.array_equal(a[lead:lead + RATE], sig[:, 0:3])
+    assert np.array_equal(b[lead:lead + RATE], sig[:, 4:6])
+    assert all(d.n_gaps == 0 and d.n_overflows == 0 for d in src.active)
+
+
+def test_live_equals_replay_and_the_recording_replays_exactly(jack, bay, tmp_path):
+    """meeting_table's six phones played into the card: the recording is bit-exact, replaying it gives the
+    live output sample for sample, and the live output scores as the fixture's replay does (same settings)."""
+    from stream.live import LIVE_DEFAULTS, run_live
+    from stream.run import run_replay
+    fx = load_fixture(REPO_FIXTURES / "meeting_table")
+    sig = np.stack([sf.read(d.path, dtype="float32")[0] for d in fx.devices], axis=1)
+    _feed(bay, sig, 6, output=True)
+    live = run_live([f"system:{k + 1}" for k in range(6)], tmp_path / "live", output="system",
+                    record=tmp_path / "take", max_duration_s=8.5, status=False,
+                    names=[d.name for d in fx.devices])
+    rep = live.report
+    assert rep["status"] == "ok" and rep["live"] is True
+    assert rep["cards"]["output"]["n_underflows"] <= 2
+    assert all(c["n_overflows"] == 0 and c["n_gaps"] == 0 for c in rep["cards"]["inputs"])
+    # the recording: each device's file is the fixture's, after the same lead of digital silence
+    rec = [sf.read(tmp_path / "take" / f"dev{k:02d}_{d.name}.wav", dtype="float32")[0] for k, d in
+           enumerate(fx.devices)]
+    lead = _lead(rec[0])
+    for x, d in zip(rec, sig.T):
+        n = min(len(d), len(x) - lead)
+        assert _lead(x) == lead and n > 6 * RATE
+        assert np.array_equal(x[lead:lead + n], d[:n])
+    # replaying the recorded folder gives the live output exactly
+    again = run_replay([tmp_path / "take"], tmp_path / "again",
+                       overrides=[(dict(LIVE_DEFAULTS, plots=False), "test")])
+    y_live = sf.read(tmp_path / "live" / "enhanced.wav", dtype="float32")[0]
+    y_again = sf.read(tmp_path / "again" / "enhanced.wav", dtype="float32")[0]
+    assert again.report["status"] == "ok"
+    np.testing.assert_array_equal(y_live, y_again)
+    # against the fixture's replay with the same settings (frame, hop, alignment): same quality within
+    # 0.5 dB SI-SDR, and the two outputs agree to >= 10 dB (the live one starts `lead` samples later, so its
+    # hops fall elsewhere in the signal)
+    cfg = live.pipeline.config
+    ref = run_replay([REPO_FIXTURES / "meeting_table"], tmp_path / "replay", overrides=[(
+        dict(LIVE_DEFAULTS, frame_samples=cfg.frame_samples, hop_samples=cfg.hop_samples, plots=False), "test")])
+    y_ref = ref.pipeline.enhanced_signal()
+    y = y_live[lead:lead + len(y_ref)]
+    n = min(len(y), len(y_ref))
+    assert metrics.si_sdr_db(y[:n], y_ref[:n]) >= 10.0
+    clean = fx.load_clean()[0][:n]
+    s_live = metrics.si_sdr_db(metrics.align_to_reference(y[:n], clean, max_lag_samples=800)[0], clean)
+    s_ref = metrics.si_sdr_db(metrics.align_to_reference(y_ref[:n], clean, max_lag_samples=800)[0], clean)
+    assert abs(s_live - s_ref) <= 0.5, (s_live, s_ref)
+    # the enhanced stream was played on the output card
+    assert bay.n_recorded > 0 and np.abs(bay.recorded[:bay.n_recorded]).max() > 0.01
+
+
+def _valid_outputs(out: Path, rec: Path | None = None) -> dict:
+    report = json.loads((out / "report.json").read_text())
+    info = sf.info(str(out / "enhanced.wav"))
+    assert info.frames >= 0 and info.samplerate == RATE
+    rows = (out / "toa.csv").read_text().splitlines()
+    assert rows[0].startswith("time_s,")
+    if rec is not None:
+        for f in sorted(rec.glob("*.wav")):
+            assert sf.info(str(f)).frames > 0
+    return report
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_a_signal_ends_the_live_stream_with_valid_files(jack, tmp_path, sig):
+    """adhoc-array live in its own process: Ctrl-C or SIGTERM once it streams; exit 0, every file valid."""
+    out, rec = tmp_path / "out", tmp_path / "rec"
+    env = dict(os.environ, JACK_DEFAULT_SERVER=jack.name)
+    proc = subprocess.Popen([sys.executable, "-X", "faulthandler", "-m", "stream.cli", "live", "--input", "system:1",
+                             "--input",
+                             "system:2", "--out", str(out), "--record", str(rec), "--no-status", "--no-plots"],
+                            env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    t_end = time.monotonic() + 60
+    while time.monotonic() < t_end and proc.poll() is None:
+        files = list(rec.glob("*.wav")) if rec.exists() else []
+        if files and all(f.stat().st_size > 44 + 4 * RATE for f in files):   # > 1 s recorded
+            break
+        time.sleep(0.1)
+    assert proc.poll() is None, proc.communicate()
+    proc.send_signal(sig)
+    try:
+        stdout, stderr = proc.communicate(timeout=60)
+    except subprocess.TimeoutExpired:   # show where it hangs: faulthandler dumps every thread on SIGABRT
+        proc.send_signal(signal.SIGABRT)
+        stdout, stderr = proc.communicate(timeout=30)
+        pytest.fail(f"live did not stop within 60 s of {sig.name}:\n{stderr[-4000:]}")
+    assert proc.returncode == 0, stderr
+    report = _valid_outputs(out, rec)
+    assert report["status"] == "ok" and report["stopped_by"] == sig.name
+    assert f"stopped by {sig.name}" in stdout
+    assert sf.info(str(sorted(rec.glob("*.wav"))[0])).duration >= 0.9
+
+
+def test_a_source_that_raises_mid_stream_leaves_valid_files_and_says_why(jack, bay, tmp_path):
+    from stream.cards import CardSource
+    from stream.config import EngineConfig
+    from stream.live import LIVE_DEFAULTS
+    from stream.run import run_stream
+
+    class Failing(CardSource):
+        def __iter__(self):
+            for k, frame in enumerate(super().__iter__()):
+                if frame.first_sample > 6 * RATE:
+                    raise OSError("the USB cable was pulled")
+                yield frame
+
+    rng = np.random.default_rng(5)
+    sig = (0.1 * rng.standard_normal((10 * RATE, 2))).astype(np.float32)
+    _feed(bay, sig, 2)
+    cfg = EngineConfig(**LIVE_DEFAULTS, plots=False)
+    with pytest.raises(OSError, match="cable"):
+        run_stream(Failing(["system:1", "system:2"]), tmp_path / "out", config=cfg, handle_signals=False)
+    report = _valid_outputs(tmp_path / "out")
+    assert report["status"] == "failed" and "the USB cable was pulled" in report["error"]
+    assert sf.info(str(tmp_path / "out" / "enhanced.wav")).duration > 1.0
+
+
+def test_a_card_that_stops_is_ended_in_one_sentence(jack, bay, tmp_path):
+    """The card's stream really stops mid-run (as when it is unplugged): the source ends that device with a
+    message and the outputs are written."""
+    from stream.cards import CardSource
+    from stream.config import EngineConfig
+    from stream.live import LIVE_DEFAULTS
+    from stream.run import run_stream
+    rng = np.random.default_rng(6)
+    _feed(bay, (0.1 * rng.standard_normal((20 * RATE, 2))).astype(np.float32), 2)
+
+    class Unplugged(CardSource):
+        def _drain(self, card, seq):   # once 6 s are captured, the card's stream stops for real
+            if card.n_consumed_clock >= 6 * RATE and card.stream.active:
+                card.stream.stop()
+            yield from super()._drain(card, seq)
+
+    src = Unplugged(["system:1", "system:2"], stall_s=0.5)
+    outcome = run_stream(src, tmp_path / "out", config=EngineConfig(**LIVE_DEFAULTS, plots=False),
+                         handle_signals=False)
+    problems = [p for d in outcome.report["devices"] for p in d["problems"]]
+    assert any("stopped delivering audio after" in p and "the stream goes on without it" in p for p in problems)
+    assert outcome.report["stream"]["audio_s"] >= 6.0
+    _valid_outputs(tmp_path / "out")
+
+
+def test_bad_cards_are_one_sentence_each_and_the_rest_streams(jack, bay, tmp_path):
+    from stream.cards import CardSource
+    from stream.config import EngineConfig
+    from stream.live import LIVE_DEFAULTS
+    from stream.run import run_stream
+    with pytest.raises(StreamError, match="None of the 1 inputs could be read"):
+        run_stream(CardSource(["no such card"]), tmp_path / "a", config=EngineConfig(plots=False),
+                   handle_signals=False)
+    rep = json.loads((tmp_path / "a" / "report.json").read_text())
+    assert "No input sound card matches 'no such card'; available: [0] system" in rep["devices"][0]["problems"][0]
+    with pytest.raises(StreamError):
+        run_stream(CardSource(["system"], sample_rate_hz=44100), tmp_path / "b", config=EngineConfig(plots=False),
+                   handle_signals=False)
+    rep = json.loads((tmp_path / "b" / "report.json").read_text())
+    assert "cannot record 8 channels at 44100 Hz" in rep["devices"][0]["problems"][0]
+    # a bad channel next to a good card: one sentence, and the good one streams
+    rng = np.random.default_rng(7)
+    _feed(bay, (0.1 * rng.standard_normal((8 * RATE, 1))).astype(np.float32), 1)
+    src = CardSource(["system:1", "system:9"], max_duration_s=5.0)
+    out = run_stream(src, tmp_path / "c", config=EngineConfig(**LIVE_DEFAULTS, plots=False), handle_signals=False)
+    assert out.report["status"] == "ok" and out.pipeline.n_devices == 1
+    assert "channel 9 does not exist" in out.report["devices"][1]["problems"][0]
+
+
+def test_missing_portaudio_is_one_sentence_with_the_fix():
+    """Where the PortAudio library cannot be found, the live commands say what to install."""
+    code = ("import ctypes.util, sys\n"
+            "real = ctypes.util.find_library\n"
+            "ctypes.util.find_library = lambda n: None if 'portaudio' in n else real(n)\n"
+            "from stream.cli import main\n"
+            "sys.exit(main(['devices']))\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2
+    assert r.stderr.strip().startswith("adhoc-array: Sound cards need the PortAudio library")
+    assert "apt-get install libportaudio2" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_no_sound_card_is_one_sentence(tmp_path):
+    """No card visible (no JACK server of that name, no ALSA card here): devices and live each say so."""
+    env = dict(os.environ, JACK_DEFAULT_SERVER="adhoc-no-such-server")
+    r = subprocess.run([sys.executable, "-m", "stream.cli", "devices"], env=env, capture_output=True, text=True,
+                       timeout=120)
+    assert r.returncode == 1 and "no sound card is visible to PortAudio" in r.stderr
+    r = subprocess.run([sys.executable, "-m", "stream.cli", "live", "--input", "USB", "--out", str(tmp_path)],
+                       env=env, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    assert r.stderr.strip().startswith("adhoc-array: No input sound card is visible to PortAudio")

@@ -1,0 +1,192 @@
+"""The one stream loop: sample-index checks, bounded history, recordings, drift, the re-check worker, signals."""
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+import soundfile as sf
+import soxr
+
+from stream.condition import FrameChecker
+from stream.config import EngineConfig
+from stream.messages import Frame, FrameFlag
+from stream.pipeline import History, HopTimes
+from stream.replay import ReplaySource
+from stream.run import run_replay, run_stream
+from stream.sinks import RecordingSink
+from tests.conftest import bursty_source, delayed
+
+FS = 16000
+
+
+def test_history_is_bounded_spans_the_stream_and_keeps_lists_in_step():
+    a, b = History(1000), History(1000)
+    for k in range(100_000):
+        a.append(k)
+        b.append(-k)
+    assert 500 <= len(a) <= 1000 and list(b) == [-v for v in a]
+    steps = np.diff(np.asarray(a))
+    assert a[0] == 0 and a[-1] > 99_000 - steps.max() and (steps == steps[0]).all()
+    full, none = History(None), History(0)
+    for k in range(10):
+        full.append(k)
+        none.append(k)
+    assert list(full) == list(range(10)) and len(none) == 0
+
+
+def test_hop_times_percentiles_match_numpy_to_the_bin():
+    rng = np.random.default_rng(0)
+    ms = rng.lognormal(-2.0, 0.8, 20_000)
+    h = HopTimes()
+    for v in ms:
+        h.add(float(v))
+    for q in (50, 99, 99.9):
+        assert abs(h.percentile(q) - np.percentile(ms, q)) <= 2 * HopTimes.BIN_MS
+    assert h.max_ms == pytest.approx(ms.max()) and h.n == len(ms)
+
+
+def test_frame_checker_fills_gaps_drops_repeats_and_mixes_channels():
+    c = FrameChecker()
+    x = np.arange(20, dtype=np.float32).reshape(10, 2)
+    f = c.process(Frame(0, 0, 0, FS, x))
+    np.testing.assert_array_equal(f.samples, x.mean(axis=1))
+    g = c.process(Frame(0, 1, 15, FS, np.ones(4, np.float32)))          # 5 samples lost
+    assert g.flags & FrameFlag.GAP and g.first_sample == 10
+    np.testing.assert_array_equal(g.samples, np.r_[np.zeros(5), np.ones(4)])
+    h = c.process(Frame(0, 2, 17, FS, np.full(4, 2.0, np.float32)))     # 2 samples repeated
+    assert h.first_sample == 19 and len(h.samples) == 2
+    assert (c.counters.n_gaps, c.counters.n_gap_samples, c.counters.n_overlap_samples) == (1, 5, 2)
+
+
+class _GapSource(ReplaySource):
+    """Replays files but loses 0.5 s of device 1 after 3 s (as a full ring would): its frames jump."""
+
+    def __iter__(self):
+        for frame in super().__iter__():
+            if frame.device_id == 1 and 3 * FS <= frame.first_sample < 3.5 * FS:
+                continue
+            yield frame
+
+
+def test_lost_samples_are_a_flagged_gap_left_out_of_the_beam(make_devices, tmp_path):
+    paths, _, _ = make_devices([0.0, 0.0004, -0.0003], duration_s=8.0)
+    cfg = EngineConfig(plots=False, progress=False, align_window_s=2.0, max_offset_s=0.5)
+    ref = run_replay(paths, tmp_path / "ref", config=cfg)
+    out = run_stream(_GapSource(paths, block_s=0.05), tmp_path / "gap", config=cfg,
+                     handle_signals=False)
+    dev = out.report["devices"][1]
+    assert dev["n_gaps"] == 1 and dev["n_gap_samples"] == FS // 2
+    assert any("lost in 1 gaps" in p for p in dev["problems"])
+    assert out.report["stream"]["n_blocks"] == ref.report["stream"]["n_blocks"]       # nothing shifted
+    lost = out.report["stream"]["n_invalid_device_blocks"] - ref.report["stream"]["n_invalid_device_blocks"]
+    hop = out.pipeline.config.hop_samples
+    assert 0.5 * FS / hop - 2 <= lost <= 0.5 * FS / hop + 2
+    y = sf.read(tmp_path / "gap" / "enhanced.wav")[0]
+    assert len(y) == len(sf.read(tmp_path / "ref" / "enhanced.wav")[0]) and np.isfinite(y).all()
+
+
+def test_a_recording_folder_replays_as_its_files(make_devices, tmp_path):
+    """RecordingSink writes what a source delivered (a 2-channel device, gaps as zeros); replaying the folder
+    equals replaying the same files named one by one."""
+    paths, _, _ = make_devices([0.0, 0.0005], duration_s=5.0)
+    stereo = np.stack([sf.read(paths[1], dtype="float32")[0]] * 2, axis=1)
+    stereo[:, 1] *= 0.5
+    sf.write(tmp_path / "st.wav", stereo, FS, subtype="FLOAT")
+    files = [paths[0], tmp_path / "st.wav"]
+    src = ReplaySource(files, block_s=0.03)
+    with src:
+        rec = RecordingSink(tmp_path / "take", src.active, description="test")
+        for frame in src:
+            rec.write(frame)
+        rec.close()
+    info = sf.info(str(tmp_path / "take" / "dev01_st.wav"))
+    assert info.channels == 2 and info.frames == len(stereo)
+    cfg = EngineConfig(plots=False, progress=False)
+    a = run_replay([tmp_path / "take"], tmp_path / "a", config=cfg)
+    b = run_replay(files, tmp_path / "b", config=cfg)
+    assert [d["name"] for d in a.report["devices"]] == ["dev0", "st"]
+    np.testing.assert_array_equal(a.pipeline.enhanced_signal(), b.pipeline.enhanced_signal())
+
+
+def test_the_report_states_each_devices_clock_drift(tmp_path):
+    """60 s; device 1's clock runs 100 ppm fast: the stream observes 100 ± 5 ppm, device 2 (none) 0 ± 5."""
+    n = 60 * FS
+    src = bursty_source(n + FS, sample_rate_hz=FS, seed=3)
+    rng = np.random.default_rng(0)
+    noise = lambda: 1e-3 * rng.standard_normal(n).astype(np.float32)  # noqa: E731
+    x1 = soxr.resample(delayed(src, 5.3, n + FS), FS, FS * (1 + 100e-6))[:n].astype(np.float32)
+    xs = [src[:n] + noise(), x1 + noise(), delayed(src, -3.1, n) + noise()]
+    paths = []
+    for k, x in enumerate(xs):
+        paths.append(tmp_path / f"d{k}.wav")
+        sf.write(paths[-1], x, FS, subtype="FLOAT")
+    out = run_replay(paths, tmp_path / "out", config=EngineConfig(plots=False, progress=False))
+    drift = out.report["stream"]["observed_drift_ppm"]
+    assert drift[0] == 0.0 and abs(drift[1] - 100.0) < 5.0 and abs(drift[2]) < 5.0
+
+
+def test_the_offset_re_check_runs_in_a_worker_and_is_reproducible(tmp_path):
+    """Device 1 loses 0.2 s mid-stream (a dropout that shortened its recording): the periodic re-check finds
+    the new offset; its result is applied a fixed stream time later, so block sizes do not change the output."""
+    n = 20 * FS
+    src = bursty_source(n + FS, sample_rate_hz=FS, seed=8)
+    rng = np.random.default_rng(1)
+    x0 = src[:n] + 1e-3 * rng.standard_normal(n).astype(np.float32)
+    x1 = delayed(src, 40.0, n + FS)
+    x1 = np.r_[x1[:8 * FS], x1[int(8.2 * FS):]][:n] + 1e-3 * rng.standard_normal(n).astype(np.float32)
+    paths = [tmp_path / "a.wav", tmp_path / "b.wav"]
+    sf.write(paths[0], x0, FS, subtype="FLOAT")
+    sf.write(paths[1], x1, FS, subtype="FLOAT")
+    cfg = dict(plots=False, progress=False, align_window_s=3.0, max_offset_s=1.0, align_recheck_s=2.0)
+    a = run_replay(paths, tmp_path / "a", config=EngineConfig(**cfg, block_s=0.05))
+    b = run_replay(paths, tmp_path / "b", config=EngineConfig(**cfg, block_s=0.013))
+    moves = [e for e in a.report["stream"]["alignment_events"] if "re-check" in e["reason"]]
+    assert moves and abs(moves[0]["new_offset_samples"] - moves[0]["old_offset_samples"] + 0.2 * FS) < 2
+    assert 8.2 < moves[0]["time_s"] < 12.5
+    np.testing.assert_array_equal(a.pipeline.enhanced_signal(), b.pipeline.enhanced_signal())
+
+
+def test_sigterm_interrupts_a_paced_replay_and_writes_everything(tmp_path):
+    cmd = [sys.executable, "-m", "stream.cli", "replay", "replay_fixtures/meeting_table", "--out", str(tmp_path),
+           "--speed", "1.0", "--no-plots"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    t_end = time.monotonic() + 60
+    while time.monotonic() < t_end and not (tmp_path / "toa.csv").exists():
+        time.sleep(0.05)
+    time.sleep(1.0)
+    proc.send_signal(signal.SIGTERM)
+    stdout, stderr = proc.communicate(timeout=60)
+    assert proc.returncode == 1, stderr
+    report = json.loads((tmp_path / "report.json").read_text())
+    assert report["status"] == "interrupted" and report["stopped_by"] == "SIGTERM"
+    assert "Stopped by SIGTERM" in report["error"] and "stopped by SIGTERM" in stdout
+    info = sf.info(str(tmp_path / "enhanced.wav"))
+    assert 0 < info.duration < 8.0
+    rows = (tmp_path / "toa.csv").read_text().splitlines()
+    assert len(rows) > 10
+
+
+def test_the_smoothers_lag_is_honoured(tmp_path):
+    """The fixed-lag smoother's TOA is `lag` frames old: the stream steers that frame's audio with it and stamps
+    it with that frame's time, so its output lines up with the filter's and its rows carry the same times."""
+    from tests.conftest import REPO_FIXTURES
+    fx = REPO_FIXTURES / "meeting_table"
+    base = dict(plots=False, progress=False)
+    k = run_replay([fx], tmp_path / "k", config=EngineConfig(**base, estimator="kalman"))
+    s = run_replay([fx], tmp_path / "s", config=EngineConfig(**base, estimator="smoother", smoother_lag_frames=6))
+    assert s.pipeline.latency_samples == k.pipeline.latency_samples + 6 * s.pipeline.config.hop_samples
+    tk, ts = (np.loadtxt(tmp_path / d / "toa.csv", delimiter=",", skiprows=1)[:, 0] for d in ("k", "s"))
+    np.testing.assert_array_equal(tk, ts)
+    yk, ys = k.pipeline.enhanced_signal(), s.pipeline.enhanced_signal()
+    assert len(yk) == len(ys) == len(sf.read(tmp_path / "s" / "enhanced.wav")[0])
+    from stream import metrics
+    _, lag = metrics.align_to_reference(ys, yk, max_lag_samples=2000)
+    assert lag == 0
+    assert metrics.si_sdr_db(ys, yk) > 10.0
+    assert s.report["metrics"]["enhancement"]["engine"]["si_sdr_db"] >= \
+        k.report["metrics"]["enhancement"]["engine"]["si_sdr_db"] - 0.5
