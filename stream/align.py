@@ -142,6 +142,9 @@ def _recheck_offsets(ref: np.ndarray, segments: dict[int, np.ndarray], *, sample
             for d, x in segments.items()}
 
 
+_LAST = int(FrameFlag.LAST)
+
+
 class _SampleBuffer:
     """Growable float32 buffer: amortised O(1) appends, occasional compaction of the front."""
 
@@ -230,6 +233,7 @@ class Aligner:
         self.recheck_tolerance_samples = int(recheck_tolerance_s * sample_rate_hz)
         self.recheck_delay_blocks = max(1, int(recheck_delay_s * sample_rate_hz / hop_samples))
         self._pending: tuple | None = None
+        self._waiting_for: int | None = None   # the device the next block waits for (see push)
         self._corrected = np.zeros(n_devices, bool)
         self._bufs = [_SampleBuffer() for _ in range(n_devices)]
         self._buf_start = [0] * n_devices     # device sample index of _bufs[d][0]
@@ -253,8 +257,10 @@ class Aligner:
         if len(samples):
             self._bufs[device_id].append(samples)
             self._received[device_id] += len(samples)
-        if flags & FrameFlag.LAST:
+        if int(flags) & _LAST:
             self._ended[device_id] = True
+        elif self._waiting_for is not None and self._waiting_for != device_id:
+            return iter(())   # the next block waits for another device: nothing new (cheap: most pushes)
         return self._emit()
 
     def finish(self) -> Iterator[Block]:
@@ -360,9 +366,13 @@ class Aligner:
             if self._ended[0] and k >= self._end_block():
                 break
             if not all_ended:
-                need = [(k + 1) * hop + self.offsets_samples[d] for d in range(self.n_devices)]
-                if any(not self._ended[d] and self._received[d] < need[d] for d in range(self.n_devices)):
+                end = (k + 1) * hop
+                lacking = next((d for d in range(self.n_devices) if not self._ended[d]
+                                and self._received[d] < end + self.offsets_samples[d]), None)
+                if lacking is not None:
+                    self._waiting_for = lacking
                     break
+            self._waiting_for = None
             if self._pending is not None and k >= self._pending[0]:
                 self._apply_recheck()
             if self.recheck_blocks and k > 0 and k % self.recheck_blocks == 0 and self._pending is None:

@@ -522,6 +522,9 @@ class ClockMap:
         return float(out) if out.ndim == 0 else out
 
 
+_LAST = int(FrameFlag.LAST)
+
+
 class RetunableConditioner:
     """A :class:`DeviceConditioner` whose ``rate_ratio`` can change mid-stream without a glitch.
 
@@ -570,7 +573,7 @@ class RetunableConditioner:
         if len(self._carry):
             y, self._carry = np.concatenate([self._carry, y]), np.zeros(0, np.float32)
         self.n_out += len(y)
-        if flags & FrameFlag.LAST:
+        if int(flags) & _LAST:
             self.ended = True
         return y, flags
 

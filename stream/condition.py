@@ -9,6 +9,7 @@ import soxr
 
 from .messages import Frame, FrameFlag
 
+_LAST = int(FrameFlag.LAST)
 CLIP_LEVEL = 0.999          # |x| at or above this counts as clipped (full scale is 1.0)
 SILENCE_RMS = 1e-7          # a block quieter than this (about -140 dBFS) is digital silence
 
@@ -48,10 +49,13 @@ class FrameChecker:
     def process(self, frame: Frame) -> Frame:
         """The frame, mono, starting exactly at the next expected sample."""
         x = frame.samples
+        jump = int(frame.first_sample) - self.next_sample
+        if jump == 0 and x.ndim == 1:   # the usual case: nothing to do
+            self.next_sample += len(x)
+            return frame
         if x.ndim == 2:
             x = x[:, 0] if x.shape[1] == 1 else x.mean(axis=1, dtype=np.float32)
         flags = frame.flags
-        jump = int(frame.first_sample) - self.next_sample
         c = self.counters
         if jump > 0:
             c.n_gaps += 1
@@ -119,7 +123,7 @@ class DeviceConditioner:
             if np.sqrt(energy / len(x)) < SILENCE_RMS:
                 c.n_silent_blocks += 1
                 flags |= FrameFlag.SILENT
-        last = bool(flags & FrameFlag.LAST)
         if self._resampler is not None:
+            last = bool(int(flags) & _LAST)
             x = self._resampler.resample_chunk(np.ascontiguousarray(x, np.float32), last=last)
         return np.asarray(x, np.float32), flags
