@@ -198,5 +198,12 @@ def run_live(inputs: Sequence[str], out_dir: str | Path, *, output: str | None =
         if "playback" in state:
             state["playback"].ring.draining = True   # the stream is over: running dry is not an underflow
 
-    return run_stream(source, out_dir, config=cfg, on_frame=on_frame, on_hop=on_hop,
-                      status=status_cb if status else None, extra_report=extra, speech=speech, on_end=on_end)
+    # the audio callbacks need the GIL: hand it over every 1 ms (Python's default is 5 ms) so that a burst of
+    # work in the stream loop (the first alignment releases seconds of audio at once) cannot starve them
+    switch = sys.getswitchinterval()
+    sys.setswitchinterval(min(switch, 0.001))
+    try:
+        return run_stream(source, out_dir, config=cfg, on_frame=on_frame, on_hop=on_hop,
+                          status=status_cb if status else None, extra_report=extra, speech=speech, on_end=on_end)
+    finally:
+        sys.setswitchinterval(switch)

@@ -265,6 +265,11 @@ class Pipeline:
         beamform.DelayAndSum(m, frame_samples=cfg.frame_samples, hop_samples=cfg.hop_samples,
                              sample_rate_hz=cfg.working_rate_hz, weighting=cfg.weighting
                              ).process_spectra(spectra, np.zeros(m), valid=np.ones(m, bool))
+        if m >= 2 and self.tracker is None:   # the estimator's kernels (the tracker's Kalman tracks compile
+            estimator = make_estimator(cfg, m)  # on their first update: the same kernel)
+            n_pairs = m * (m - 1) // 2
+            for _ in range(3):   # initialise, then update
+                estimator.update(np.zeros(n_pairs), np.ones(n_pairs))
         return time.perf_counter() - t0
 
     @property
