@@ -193,16 +193,26 @@ class SourceTracker:
 
     # -- state ---------------------------------------------------------------------------------------
     def reset(self) -> None:
-        """Forget every track, the steering and the counters."""
+        """Forget every track and the steering (the stream re-aligned a device: what was tracked under the old
+        alignment means nothing). Ended tracks, switches and the counters stay for the report; new tracks get
+        new ids."""
+        if not hasattr(self, "tracks"):   # first call, from __init__
+            self.ended: list[Track] = []
+            self.switches: list[dict] = []
+            self.n_frames = 0
+            self.n_speech_frames = 0
+            self.n_births = 0
+            self._next_id = 0
+            self._last_time_s = 0.0
+        else:
+            if self.steered is not None:
+                self.switches.append({"time_s": round(self._last_time_s, 3), "from": self.steered.track_id,
+                                      "to": -1, "reason": "the stream re-aligned a device: every track restarts"})
+            for t in list(self.tracks):
+                self._end(t, self._last_time_s, "reset: the stream re-aligned a device")
         self.tracks: list[Track] = []
-        self.ended: list[Track] = []
         self.steered: Track | None = None
-        self.switches: list[dict] = []
-        self.n_frames = 0
-        self.n_speech_frames = 0
-        self.n_births = 0
         self._quiet_frames = 0
-        self._next_id = 0
         self.gated = False
         self.steered_toa_s = np.zeros(self.n_devices)
 
@@ -262,6 +272,7 @@ class SourceTracker:
             The steered relative TOA (seconds; ``toa[0] = 0``), zeros when nothing is steered.
         """
         self.n_frames += 1
+        self._last_time_s = time_s
         self._time_s = time_s
         speech = bool(speech_probability >= self.speech_threshold)
         pair_ok = usable[self._pairs[:, 0]] & usable[self._pairs[:, 1]]

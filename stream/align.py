@@ -143,6 +143,18 @@ def _recheck_offsets(ref: np.ndarray, segments: dict[int, np.ndarray], *, sample
 
 
 _LAST = int(FrameFlag.LAST)
+RECHECK_MIN_QUALITY = 0.5        # envelope correlation a re-check needs to move an aligned device
+RECHECK_MAX_SILENT_SHARE = 0.1   # a re-check skips windows with more digital silence than this (stream ends)
+
+
+def _silent_share(x: np.ndarray, sample_rate_hz: float) -> float:
+    """Share of the 10 ms frames of ``x`` that are digital silence (RMS below ``SILENCE_RMS``)."""
+    hop = max(1, int(0.01 * sample_rate_hz))
+    n = len(x) // hop
+    if n == 0:
+        return 1.0
+    ms = np.mean(np.square(x[:n * hop].reshape(n, hop), dtype=np.float64), axis=1)
+    return float(np.mean(ms < SILENCE_RMS ** 2))
 
 
 class _SampleBuffer:
@@ -289,13 +301,13 @@ class Aligner:
         ref_end = self.next_block * self.hop_samples
         ref_start = max(0, ref_end - self.window_samples)
         ref = self._slice(0, ref_start, ref_end)
-        if ref is None or np.sqrt(np.mean(ref.astype(np.float64) ** 2)) < SILENCE_RMS:
+        if ref is None or _silent_share(ref, self.sample_rate_hz) > RECHECK_MAX_SILENT_SHARE:
             return
         segments = {}
         for d in range(1, self.n_devices):
             o = int(self.offsets_samples[d])
             x = self._slice(d, ref_start + o, ref_end + o)
-            if x is not None:
+            if x is not None and _silent_share(x, self.sample_rate_hz) <= RECHECK_MAX_SILENT_SHARE:
                 segments[d] = x
         max_offset_s = min(self.max_offset_s, 0.5 * len(ref) / self.sample_rate_hz)
         future = _executor().submit(_recheck_offsets, ref, segments, sample_rate_hz=self.sample_rate_hz,
@@ -308,7 +320,9 @@ class Aligner:
         _, snapshot, future = self._pending
         self._pending = None
         for d, (delta, q) in future.result().items():   # a worker's error is raised here, in the stream loop
-            if q < self.min_quality or self.offsets_samples[d] != snapshot[d]:
+            # moving an aligned device takes a clear correlation; joining a left-out one, the usual threshold
+            need = self.min_quality if not self.aligned[d] else max(self.min_quality, RECHECK_MIN_QUALITY)
+            if q < need or self.offsets_samples[d] != snapshot[d]:
                 continue
             if not self.aligned[d]:
                 self.aligned[d] = True

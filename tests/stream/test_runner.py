@@ -190,3 +190,24 @@ def test_the_smoothers_lag_is_honoured(tmp_path):
     assert metrics.si_sdr_db(ys, yk) > 10.0
     assert s.report["metrics"]["enhancement"]["engine"]["si_sdr_db"] >= \
         k.report["metrics"]["enhancement"]["engine"]["si_sdr_db"] - 0.5
+
+
+def test_a_re_check_over_the_silence_after_the_end_does_not_move_devices(tmp_path):
+    """meeting_table followed by 4 s of digital silence (a live recording that went on after the talk), with the
+    live settings: the re-check over a window that is half silence moves nothing, and the talker is tracked."""
+    from stream.fixture import load_fixture
+    from tests.conftest import REPO_FIXTURES
+    fx = load_fixture(REPO_FIXTURES / "meeting_table")
+    paths = []
+    for d in fx.devices:
+        x, rate = sf.read(d.path, dtype="float32")
+        paths.append(tmp_path / f"{d.name}.wav")
+        sf.write(paths[-1], np.r_[x, np.zeros(4 * rate, np.float32)], rate, subtype="FLOAT")
+    cfg = EngineConfig(plots=False, progress=False, estimator="tracks", align_window_s=4.0, max_offset_s=0.5,
+                       align_recheck_s=5.0)
+    out = run_replay(paths, tmp_path / "out", config=cfg)
+    assert out.report["stream"]["alignment_events"] == []
+    ref = run_replay([REPO_FIXTURES / "meeting_table"], tmp_path / "ref", config=cfg)   # without the silence
+    assert out.report["stream"]["coarse_offsets_s"] == ref.report["stream"]["coarse_offsets_s"]
+    assert out.report["sources"]["n_speech_frames"] > 100
+    assert any(t["kind"] == "speech" for t in out.report["sources"]["tracks"])
