@@ -40,7 +40,6 @@ as good as the best single device, the worst noise steering), per estimator; and
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import logging
 import math

@@ -53,7 +53,6 @@ from __future__ import annotations
 import argparse
 import glob
 import importlib.metadata as md
-import io
 import json
 import math
 import os

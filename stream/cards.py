@@ -321,7 +321,7 @@ class CardSource:
 
     def open(self) -> None:
         """Find and open every card; a spec that cannot be used is left out with one sentence."""
-        sd = self._sd = import_sounddevice()
+        self._sd = import_sounddevice()
         cards = list_cards()
         if not any(c.max_input_channels > 0 for c in cards):
             raise AudioDeviceError("No input sound card is visible to PortAudio; connect one (or start a JACK or "
@@ -603,7 +603,11 @@ class CardPlayback:
     def queued_samples(self) -> int:
         return self.ring.n_written - self.ring.n_read
 
-    def write(self, samples: np.ndarray) -> None:
+    def write(self, result) -> None:
+        """Queue one hop of enhanced audio (a :class:`~stream.messages.HopResult`: the hop sink protocol)."""
+        self.write_samples(result.enhanced)
+
+    def write_samples(self, samples: np.ndarray) -> None:
         """Queue one hop of enhanced audio.
 
         The queue level is kept near ``queue_s``: a hop that finds the queue over ``max_queue`` is dropped

@@ -9,7 +9,6 @@ from typing import Any
 import numpy as np
 
 import beamform
-import estimators
 
 from . import metrics
 from .config import EngineConfig

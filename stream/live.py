@@ -158,14 +158,16 @@ def run_live(inputs: Sequence[str], out_dir: str | Path, *, output: str | None =
         if "status" in state:
             state["status"].observe(frame)
 
-    def on_hop(enhanced: np.ndarray) -> None:
-        if output is None:
-            return
-        if "playback" not in state:
-            fs = source.active[0].sample_rate_hz if cfg.working_rate_hz is None else cfg.working_rate_hz
-            state["playback"] = CardPlayback(output, sample_rate_hz=fs, block_samples=block_samples,
-                                             queue_s=output_margin_s)
-        state["playback"].write(enhanced)
+    class Playback:   # the output card as a hop sink, opened on the first hop (the working rate is known then)
+        def write(self, result) -> None:
+            if "playback" not in state:
+                fs = source.active[0].sample_rate_hz if cfg.working_rate_hz is None else cfg.working_rate_hz
+                state["playback"] = CardPlayback(output, sample_rate_hz=fs, block_samples=block_samples,
+                                                 queue_s=output_margin_s)
+            state["playback"].write(result)
+
+        def close(self) -> None:   # closed with the report (extra below), after the stream
+            pass
 
     def status_cb(pipeline) -> None:
         if "status" not in state:
@@ -203,7 +205,8 @@ def run_live(inputs: Sequence[str], out_dir: str | Path, *, output: str | None =
     switch = sys.getswitchinterval()
     sys.setswitchinterval(min(switch, 0.001))
     try:
-        return run_stream(source, out_dir, config=cfg, on_frame=on_frame, on_hop=on_hop,
+        return run_stream(source, out_dir, config=cfg, on_frame=on_frame,
+                          extra_sinks=[Playback()] if output is not None else [],
                           status=status_cb if status else None, extra_report=extra, speech=speech, on_end=on_end)
     finally:
         sys.setswitchinterval(switch)

@@ -115,6 +115,31 @@ class ToaEstimate:
     speech_probability: float = float("nan")
 
 
+@dataclass(frozen=True)
+class HopResult:
+    """What the pipeline produced for one hop, as the sinks consume it (``write(result)``, then ``close()``).
+
+    Attributes
+    ----------
+    enhanced : ndarray, shape (hop_samples,), float32
+        The beamformer's output hop (the first ``Pipeline.latency_samples`` of the stream are its delay).
+    toa : ToaEstimate or None
+        The steering of the frame this hop belongs to; None for hops that carry no frame: the start-up of a
+        lagging estimator and the beamformer's tail after the input ended.
+    """
+
+    enhanced: np.ndarray
+    toa: ToaEstimate | None = None
+
+
+class HopSink(Protocol):
+    """Consumes the pipeline's hops as they are produced (enhanced.wav, toa.csv, a sound card)."""
+
+    def write(self, result: HopResult) -> None: ...
+
+    def close(self) -> None: ...
+
+
 class Source(Protocol):
     """What the stream runner reads: replayed files, sound cards, later the network.
 

@@ -17,8 +17,8 @@ from __future__ import annotations
 import collections
 import logging
 import time
-from dataclasses import dataclass, field
-from typing import Callable, Iterable, Sequence
+from dataclasses import dataclass
+from typing import Iterable, Sequence
 
 import numpy as np
 
@@ -32,7 +32,7 @@ from .condition import DeviceCounters, FrameChecker
 from .config import EngineConfig
 from .errors import ConfigError
 from .geometry import Geometry
-from .messages import Block, Frame, FrameFlag, TdoaFrame, ToaEstimate
+from .messages import Block, Frame, FrameFlag, HopResult, TdoaFrame, ToaEstimate
 
 log = logging.getLogger(__name__)
 
@@ -168,9 +168,6 @@ class Pipeline:
         Nominal rate of every device.
     keep_input : bool
         Keep the aligned multi-device input in memory (for metrics against ground truth).
-    on_block : callable, optional
-        Called with ``(Block, ToaEstimate, enhanced_hop)`` after each block, then with ``(None, None,
-        enhanced_hop)`` for each hop of the beamformer's tail at the end (sinks).
     rate_ratios : sequence of float, optional
         Initial clock correction of every device (``DeviceConditioner.rate_ratio``).
     calibrator : StreamCalibrator, optional
@@ -186,7 +183,6 @@ class Pipeline:
     """
 
     def __init__(self, config: EngineConfig, device_rates_hz: Iterable[float], *, keep_input: bool = False,
-                 on_block: Callable[[Block, ToaEstimate, np.ndarray], None] | None = None,
                  rate_ratios: Iterable[float] | None = None, calibrator: StreamCalibrator | None = None,
                  device_names: Sequence[str] = (), speech=None, history_cap: int | None = None) -> None:
         self.config = config
@@ -234,7 +230,7 @@ class Pipeline:
                                         hop_samples=config.hop_samples, sample_rate_hz=fs,
                                         weighting=config.weighting)
         self.keep_input = keep_input
-        self.on_block = on_block
+        self._results: list[HopResult] = []
         self.counters = StreamCounters()
         self.state = PipelineState(history_cap=history_cap)
         self.hop_times = HopTimes()
@@ -281,18 +277,24 @@ class Pipeline:
         """Output delay in samples: the beamformer's overlap-add, plus the estimator's lag in hops."""
         return int(self.das.latency_samples) + self._lag * self.config.hop_samples
 
-    def feed(self, frame: Frame) -> None:
-        """Process one device frame (all complete blocks it releases go through the chain)."""
+    def feed(self, frame: Frame) -> list[HopResult]:
+        """Process one device frame: every complete block it releases goes through the chain. Returns the
+        hops produced (for the sinks), in order."""
         frame = self.checkers[frame.device_id].process(frame)
         samples, flags = self.conditioners[frame.device_id].process(frame)
         if self.calibrator is not None:
             self.calibrator.observe(frame.device_id, samples, last=bool(flags & FrameFlag.LAST))
         for block in self.aligner.push(frame.device_id, samples, flags):
             self.process_block(block)
+        return self._take_results()
 
-    def finish(self) -> None:
+    def _take_results(self) -> list[HopResult]:
+        out, self._results = self._results, []
+        return out
+
+    def finish(self) -> list[HopResult]:
         """Flush: release the last blocks and the beamformer's tail; then a last calibration solve (bounded
-        wait: the audio is done)."""
+        wait: the audio is done). Returns the hops produced, in order."""
         for block in self.aligner.finish():
             self.process_block(block)
         fs = self.config.working_rate_hz
@@ -302,8 +304,7 @@ class Pipeline:
             enhanced = self.das.process_spectra(spectra, fine, valid=valid)
             toa = ToaEstimate(block.seq, time_s, block.offsets_samples / fs + fine, False, -1, float("nan"))
             self._record(block, tdoa, toa, enhanced)
-            if self.on_block is not None:
-                self.on_block(block, toa, enhanced)
+            self._results.append(HopResult(enhanced, toa))
         if self.calibrator is not None:
             n0 = self.counters.n_blocks * self.config.hop_samples
             geometry = self.calibrator.finish(
@@ -325,8 +326,8 @@ class Pipeline:
             spectra = self.stft.process(zeros)
             enhanced = self.das.process_spectra(spectra, toa)
             self.state.enhanced.append(enhanced)
-            if self.on_block is not None:
-                self.on_block(None, None, enhanced)
+            self._results.append(HopResult(enhanced))
+        return self._take_results()
 
     def _pre_roll(self, block: Block, t0: float) -> None:
         """The first ``lag`` hops of a lagging estimator: the output is silence (the beamformer's output is
@@ -335,10 +336,10 @@ class Pipeline:
         self.state.enhanced.append(enhanced)
         ms = 1e3 * (time.perf_counter() - t0)
         self.hop_times.add(ms)
-        if self.on_block is not None:
-            self.on_block(None, None, enhanced)
+        self._results.append(HopResult(enhanced))
 
     def process_block(self, block: Block) -> None:
+        """One aligned block through the chain; its hop is queued for :meth:`feed`/:meth:`finish` to return."""
         t0 = time.perf_counter()
         cfg = self.config
         fs = cfg.working_rate_hz
@@ -399,8 +400,7 @@ class Pipeline:
         ms = 1e3 * (time.perf_counter() - t0)
         self.state.block_ms.append(ms)
         self.hop_times.add(ms)
-        if self.on_block is not None:
-            self.on_block(block, toa, enhanced)
+        self._results.append(HopResult(enhanced, toa))
 
     # calibration -----------------------------------------------------------------------------
     def clock_relation(self, first_sample: int, offsets_samples: np.ndarray) -> np.ndarray:

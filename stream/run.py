@@ -22,6 +22,7 @@ from .errors import AdhocArrayError, InputFileError, StreamError
 from .fixture import Fixture, is_fixture_dir, load_fixture
 from .geometry import Geometry
 from .pipeline import Pipeline
+from .messages import HopSink
 from .replay import ReplaySource
 
 log = logging.getLogger(__name__)
@@ -155,7 +156,7 @@ def run_replay(inputs: Sequence[str | Path], out_dir: str | Path, *, config: Eng
 def run_stream(source, out_dir: str | Path, *, config: EngineConfig, fixture: Fixture | None = None,
                names: Sequence[str] | None = None, solver: Callable[[CalibrationSnapshot], Geometry] | None = None,
                on_geometry: Callable[[Geometry], None] | None = None, speech=None,
-               on_frame: Callable[[Any], None] | None = None, on_hop: Callable[[np.ndarray], None] | None = None,
+               on_frame: Callable[[Any], None] | None = None, extra_sinks: Sequence[HopSink] = (),
                status: Callable[[Pipeline], None] | None = None, status_every_s: float = 1.0,
                history_cap: int | None = None, extra_report: Callable[[dict], None] | None = None,
                on_end: Callable[[], None] | None = None,
@@ -169,8 +170,9 @@ def run_stream(source, out_dir: str | Path, *, config: EngineConfig, fixture: Fi
         Not yet opened; opened and closed here.
     on_frame : callable, optional
         Every raw frame, before the pipeline (``--record``).
-    on_hop : callable, optional
-        Every enhanced hop as it is produced (a sound card).
+    extra_sinks : sequence of HopSink
+        Sinks of every hop besides enhanced.wav and toa.csv (a sound card); written as the hops are produced
+        (``write(HopResult)``), closed by their owner.
     status : callable, optional
         Called with the pipeline every ``status_every_s`` seconds of wall time (a live status line).
     history_cap : int, optional
@@ -227,14 +229,13 @@ def run_stream(source, out_dir: str | Path, *, config: EngineConfig, fixture: Fi
             csv_sink = sinks.ToaCsvSink(out / "toa.csv", [d.name for d in src.active],
                                         tracks=pipeline.tracker is not None)
 
-            def write_hop(block, toa, enhanced) -> None:
-                wav.write(enhanced)
-                if toa is not None:
-                    csv_sink.write_estimate(toa)
-                if on_hop is not None:
-                    on_hop(enhanced)
+            hop_sinks = [wav, csv_sink, *extra_sinks]
 
-            pipeline.on_block = write_hop
+            def write(results) -> None:
+                for result in results:
+                    for sink in hop_sinks:
+                        sink.write(result)
+
             bar = tqdm(total=round(duration or 0.0, 2), unit="s", desc="replay",
                        disable=None if (cfg.progress and duration is not None and status is None) else True,
                        leave=False, bar_format="{l_bar}{bar}| {n:.1f}/{total:.1f} s [{elapsed}<{remaining}]")
@@ -243,13 +244,13 @@ def run_stream(source, out_dir: str | Path, *, config: EngineConfig, fixture: Fi
                 for frame in src:
                     if on_frame is not None:
                         on_frame(frame)
-                    pipeline.feed(frame)
+                    write(pipeline.feed(frame))
                     if frame.device_id == 0 and duration is not None:
                         bar.update(min(len(frame.samples) / frame.sample_rate_hz, bar.total - bar.n))
                     if status is not None and time.perf_counter() >= next_status:
                         next_status += status_every_s
                         status(pipeline)
-                pipeline.finish()
+                write(pipeline.finish())
                 if on_end is not None:
                     on_end()
             finally:

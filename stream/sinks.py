@@ -12,7 +12,7 @@ import soundfile as sf
 
 
 class WavSink:
-    """Streams mono float32 audio into a WAV file.
+    """Streams mono float32 audio into a WAV file; as a hop sink (``write(HopResult)``), the enhanced audio.
 
     Parameters
     ----------
@@ -39,7 +39,12 @@ class WavSink:
         self._buf = np.zeros(max(1, int(buffer_samples)), np.float32)
         self._n_buf = 0
 
-    def write(self, samples: np.ndarray) -> None:
+    def write(self, result) -> None:
+        """Append one hop's enhanced audio (a :class:`~stream.messages.HopResult`)."""
+        self.write_samples(result.enhanced)
+
+    def write_samples(self, samples: np.ndarray) -> None:
+        """Append mono samples."""
         x = np.asarray(samples, np.float32)
         if self._skip:
             k = min(self._skip, len(x))
@@ -141,7 +146,8 @@ def _safe(name: str) -> str:
 
 
 class ToaCsvSink:
-    """Streams the TOA track: frame centre time (reference clock, s), relative TOA of every device (s), gated."""
+    """Streams the TOA track: frame centre time (reference clock, s), relative TOA of every device (s), gated;
+    with the tracker, the steered track and the speech presence. A hop sink: one row per hop with a frame."""
 
     def __init__(self, path: str | Path, device_names: Sequence[str], *, tracks: bool = False) -> None:
         self.path = Path(path)
@@ -152,17 +158,19 @@ class ToaCsvSink:
         self._writer.writerow(["time_s", *[f"toa_s_{k}_{n}" for k, n in enumerate(device_names)], "gated", *extra])
         self.n_rows = 0
 
-    def write(self, time_s: float, toa_s: np.ndarray, gated: bool, track_id: int = -1,
-              speech_probability: float = float("nan")) -> None:
+    def write(self, result) -> None:
+        """One row from a :class:`~stream.messages.HopResult` (none for hops without a frame)."""
+        toa = result.toa
+        if toa is not None:
+            self.write_row(toa.time_s, toa.toa_s, toa.gated, toa.track_id, toa.speech_probability)
+
+    def write_row(self, time_s: float, toa_s: np.ndarray, gated: bool, track_id: int = -1,
+                  speech_probability: float = float("nan")) -> None:
         extra = [int(track_id), f"{speech_probability:.3f}"] if self.tracks else []
         self._writer.writerow([f"{time_s:.6f}", *[f"{v:.9f}" for v in toa_s], int(gated), *extra])
         self.n_rows += 1
         if self.n_rows % 256 == 0:
             self._fh.flush()
-
-    def write_estimate(self, toa) -> None:
-        """One row from a :class:`~stream.messages.ToaEstimate`."""
-        self.write(toa.time_s, toa.toa_s, toa.gated, toa.track_id, toa.speech_probability)
 
     def close(self) -> None:
         if not self._fh.closed:
