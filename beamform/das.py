@@ -72,7 +72,7 @@ from typing import Literal
 import numba
 import numpy as np
 
-from estimators._numba import borrowed
+from estimators.numba_tools import borrowed
 
 from .stft import StreamingIstft, StreamingStft, _synthesise, istft, stft
 
@@ -389,7 +389,7 @@ def _check_inputs(X: np.ndarray, toa: np.ndarray, valid: np.ndarray, Z: np.ndarr
 def _das_beamform(X: np.ndarray, toa: np.ndarray, valid: np.ndarray, f64: np.ndarray, fstate: np.ndarray,
                   istate: np.ndarray, f32: np.ndarray, Z: np.ndarray, out: np.ndarray) -> int:
     """:func:`_beamform`, ``Y`` copied into ``out`` (n_bins,) complex64; a return code."""
-    # borrowed (estimators._numba): no reference-count updates for the views and calls below
+    # borrowed (estimators.numba_tools): no reference-count updates for the views and calls below
     X, toa, valid, Z = borrowed(X), borrowed(toa), borrowed(valid), borrowed(Z)
     f64, fstate, istate, f32 = borrowed(f64), borrowed(fstate), borrowed(istate), borrowed(f32)
     code = _check_inputs(X, toa, valid, Z)
@@ -406,7 +406,7 @@ def _das_process(X: np.ndarray, toa: np.ndarray, valid: np.ndarray, f64: np.ndar
                  out: np.ndarray) -> int:
     """:func:`_beamform`, then the synthesis of ``Y`` (``irfft`` and the weighted
     overlap-add of ``beamform.stft``) into ``out``, the next ``hop`` samples; a return code."""
-    # borrowed (estimators._numba): no reference-count updates for the views and calls below
+    # borrowed (estimators.numba_tools): no reference-count updates for the views and calls below
     X, toa, valid, Z = borrowed(X), borrowed(toa), borrowed(valid), borrowed(Z)
     f64, fstate, istate, f32 = borrowed(f64), borrowed(fstate), borrowed(istate), borrowed(f32)
     ola, ola_state, out = borrowed(ola), borrowed(ola_state), borrowed(out)

@@ -30,7 +30,7 @@ import numba
 import numpy as np
 import scipy.signal
 
-from estimators._numba import borrowed
+from estimators.numba_tools import borrowed
 
 __all__ = [
     "StreamingStft",
@@ -174,7 +174,7 @@ def _stft_process(block: np.ndarray, history: np.ndarray, state: np.ndarray, win
     """
     if block.shape[0] != state[2] or block.shape[1] != history.shape[0]:
         return False
-    # borrowed (estimators._numba): no reference-count updates for the views and calls below
+    # borrowed (estimators.numba_tools): no reference-count updates for the views and calls below
     block, history, state, window = borrowed(block), borrowed(history), borrowed(state), borrowed(window)
     windowed, out = borrowed(windowed), borrowed(out)
     _push_hop(block, 0, history, state, window, windowed)

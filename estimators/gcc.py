@@ -47,7 +47,7 @@ from numba.extending import intrinsic
 import numpy as np
 import scipy.signal
 
-from ._numba import borrowed
+from .numba_tools import borrowed
 
 __all__ = ["GccPhat", "gcc_phat", "gcc_phat_spectra"]
 
@@ -387,7 +387,7 @@ def _gcc_process(spectra, valid, work, layout, tdoa_s, confidence):
         return _BAD_SPECTRA_SHAPE
     if valid.shape[0] != m:
         return _BAD_VALID_SHAPE
-    # borrowed (estimators._numba): no reference-count updates for the views and calls below
+    # borrowed (estimators.numba_tools): no reference-count updates for the views and calls below
     spectra, valid, work = borrowed(spectra), borrowed(valid), borrowed(work)
     tdoa_s, confidence = borrowed(tdoa_s), borrowed(confidence)
     mag, unit, cross, corr = _work_views(work, layout)

@@ -38,7 +38,7 @@ from typing import Literal
 import numba
 import numpy as np
 
-from ._numba import borrowed
+from .numba_tools import borrowed
 
 __all__ = ["NoiseAwareGcc", "Weighting"]
 

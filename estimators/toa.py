@@ -31,7 +31,7 @@ import scipy.stats
 from filterpy.common import Q_continuous_white_noise
 from filterpy.kalman import KalmanFilter
 
-from ._numba import borrowed
+from .numba_tools import borrowed
 from .conventions import pair_matrix
 
 _F64 = np.dtype(np.float64)
@@ -586,7 +586,7 @@ def _step(tdoa, confidence, x, P, x_prior, P_prior, params, status, toa_out, wor
 @numba.njit(numba.types.int64(_RO_PAIRS, _RO_PAIRS, _VEC, _VEC), cache=True, nogil=True)
 def _kalman_step(tdoa, confidence, buffers, params):
     """:func:`_step` on the buffers of :func:`_kalman_views`."""
-    # borrowed (estimators._numba): no reference-count updates for the views and calls below
+    # borrowed (estimators.numba_tools): no reference-count updates for the views and calls below
     tdoa, confidence, buffers, params = borrowed(tdoa), borrowed(confidence), borrowed(buffers), borrowed(params)
     status, x, x_prior, P, P_prior, toa_out, work = _kalman_views(buffers, int(params[_P_M]))
     return _step(tdoa, confidence, x, P, x_prior, P_prior, params, status, toa_out, work)

@@ -1,7 +1,9 @@
 """Per-device conditioning: check the frame's sample index (fill gaps), mix channels down, sanitise samples,
-flag data-quality events, resample to the working rate."""
+flag data-quality events, resample to the working rate; each device's clock map (working-rate sample index ->
+the device's own clock) and glitch-free rate changes when a calibration corrects a device's drift."""
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -127,3 +129,121 @@ class DeviceConditioner:
             last = bool(int(flags) & _LAST)
             x = self._resampler.resample_chunk(np.ascontiguousarray(x, np.float32), last=last)
         return np.asarray(x, np.float32), flags
+
+
+HISTORY_S = 0.25   # input kept per device to prime a resampler after a rate change
+
+
+class ClockMap:
+    """Working-rate sample index ``m`` of one device's conditioned stream -> that device's clock ``c`` (s).
+
+    Piecewise linear, one segment per rate ratio: ``c = c_k + (m - m_k) * ratio_k / working_rate_hz`` for
+    ``m_k <= m < m_{k+1}``; the last segment extends to +inf (and the first to -inf).
+    """
+
+    def __init__(self, working_rate_hz: float) -> None:
+        self.working_rate_hz = float(working_rate_hz)
+        self.start_index = [0]
+        self.start_clock_s = [0.0]
+        self.ratio = [1.0]
+
+    def append(self, start_index: int, start_clock_s: float, ratio: float) -> None:
+        if start_index < self.start_index[-1]:
+            raise ValueError(f"{start_index=} must not precede the last segment ({self.start_index[-1]})")
+        if start_index == self.start_index[-1]:
+            self.start_index.pop(), self.start_clock_s.pop(), self.ratio.pop()
+        self.start_index.append(int(start_index))
+        self.start_clock_s.append(float(start_clock_s))
+        self.ratio.append(float(ratio))
+
+    def clock_s(self, index):
+        """Clock (seconds) of working-rate sample index (scalar or array, fractional allowed)."""
+        m = np.asarray(index, float)
+        k = np.clip(np.searchsorted(self.start_index, m, side="right") - 1, 0, None)
+        m0 = np.asarray(self.start_index, float)[k]
+        out = np.asarray(self.start_clock_s)[k] + (m - m0) * np.asarray(self.ratio)[k] / self.working_rate_hz
+        return float(out) if out.ndim == 0 else out
+
+    def index_of(self, clock_s):
+        """Inverse of :meth:`clock_s` (clock increases with the index)."""
+        c = np.asarray(clock_s, float)
+        k = np.clip(np.searchsorted(self.start_clock_s, c, side="right") - 1, 0, None)
+        out = (np.asarray(self.start_index, float)[k] + (c - np.asarray(self.start_clock_s)[k])
+               * self.working_rate_hz / np.asarray(self.ratio)[k])
+        return float(out) if out.ndim == 0 else out
+
+
+class RetunableConditioner:
+    """A :class:`DeviceConditioner` whose ``rate_ratio`` can change mid-stream without a glitch.
+
+    A rate change builds a new conditioner with the new ratio, primes it with the last ``HISTORY_S`` of input
+    and drops its outputs up to the clock of the next sample the old one would have produced: the output is
+    continuous to within the resampler's accuracy (about -95 dB) and the :class:`ClockMap` gets an exact new
+    segment (the phase jump is under half a sample and is in the map). Without rate changes it is exactly the
+    wrapped conditioner.
+    """
+
+    def __init__(self, sample_rate_hz: float, *, working_rate_hz: float, rate_ratio: float = 1.0,
+                 keep_history: bool = False) -> None:
+        self.sample_rate_hz = float(sample_rate_hz)
+        self.working_rate_hz = float(working_rate_hz)
+        self.inner = DeviceConditioner(sample_rate_hz, working_rate_hz=working_rate_hz, rate_ratio=rate_ratio)
+        self.clock = ClockMap(working_rate_hz)
+        if rate_ratio != 1.0:
+            self.clock.ratio[0] = float(rate_ratio)
+        self.n_in = 0
+        self.n_out = 0
+        self.ended = False
+        self.n_retunes = 0
+        self._history_len = max(4096, int(HISTORY_S * sample_rate_hz)) if keep_history else 0
+        self._history = np.zeros(0, np.float32)
+        self._carry = np.zeros(0, np.float32)
+        self._skip = 0
+
+    @property
+    def counters(self) -> DeviceCounters:
+        return self.inner.counters
+
+    @property
+    def rate_ratio(self) -> float:
+        return self.inner.rate_ratio
+
+    def process(self, frame: Frame) -> tuple[np.ndarray, FrameFlag]:
+        """Samples at the working rate (float32) and flags, as :meth:`DeviceConditioner.process`."""
+        if self._history_len:
+            x = np.where(np.isfinite(frame.samples), frame.samples, np.float32(0.0)).astype(np.float32)
+            self._history = np.concatenate([self._history, x])[-self._history_len:]
+        self.n_in += len(frame.samples)
+        y, flags = self.inner.process(frame)
+        if self._skip:
+            k = min(self._skip, len(y))
+            y, self._skip = y[k:], self._skip - k
+        if len(self._carry):
+            y, self._carry = np.concatenate([self._carry, y]), np.zeros(0, np.float32)
+        self.n_out += len(y)
+        if int(flags) & _LAST:
+            self.ended = True
+        return y, flags
+
+    def retune(self, rate_ratio: float) -> None:
+        """Use ``rate_ratio`` from the next output sample on (effective with the next :meth:`process`)."""
+        if not self._history_len:
+            raise RuntimeError("this conditioner keeps no input history (keep_history=False); it cannot retune")
+        q = float(rate_ratio)
+        if not (np.isfinite(q) and 0.5 < q < 2.0):
+            raise ValueError(f"{rate_ratio=} must be a clock rate ratio near 1")
+        if self.ended or q == self.rate_ratio:
+            return
+        fs, fd = self.working_rate_hz, self.sample_rate_hz
+        c_target = self.clock.clock_s(self.n_out)             # clock of the next output under the old ratio
+        n_p = self.n_in - len(self._history)                   # input index of the first primed sample
+        j0 = max(0, int(math.ceil((c_target - n_p / fd) * fs / q - 0.5)))
+        new = DeviceConditioner(fd, working_rate_hz=fs, rate_ratio=q)
+        counters = self.inner.counters
+        y, _ = new.process(Frame(0, 0, n_p, fd, self._history.copy()))
+        new.counters = counters                                # priming is not new input
+        self.inner = new
+        self.clock.append(self.n_out, n_p / fd + j0 * q / fs, q)
+        k = min(j0, len(y))
+        self._carry, self._skip = y[k:].astype(np.float32), j0 - k
+        self.n_retunes += 1

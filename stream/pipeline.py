@@ -27,8 +27,8 @@ import estimators
 from estimators import SPEED_OF_SOUND_M_S
 
 from .align import Aligner, AlignmentEvent
-from .calibration import RetunableConditioner, StreamCalibrator
-from .condition import DeviceCounters, FrameChecker
+from .calibration import StreamCalibrator
+from .condition import DeviceCounters, FrameChecker, RetunableConditioner
 from .config import EngineConfig
 from .errors import ConfigError
 from .geometry import Geometry

@@ -10,7 +10,7 @@ import textwrap
 import numba
 import numpy as np
 
-from estimators._numba import borrowed
+from estimators.numba_tools import borrowed
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 

@@ -20,8 +20,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import estimators
-from stream.calibration import (ChirpDetector, CalibrationSnapshot, ClockMap, OdometryLog, RetunableConditioner,
-                                StreamCalibrator, calibrate, load_measurements, load_odometry_csv)
+from stream.calibration import (ChirpDetector, CalibrationSnapshot, OdometryLog, StreamCalibrator, calibrate,
+                                load_measurements, load_odometry_csv)
+from stream.condition import ClockMap, RetunableConditioner
 from stream.cli import main
 from stream.config import EngineConfig
 from stream.errors import ConfigError, InputFileError

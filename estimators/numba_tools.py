@@ -1,4 +1,5 @@
-"""Small numba helpers shared by the compiled per-hop kernels of ``estimators`` and ``beamform``."""
+"""Numba helpers shared by the compiled per-hop kernels of ``estimators`` and ``beamform`` (public: beamform
+imports it from here; it depends on numba alone)."""
 
 from __future__ import annotations
 
