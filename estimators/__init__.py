@@ -9,7 +9,7 @@ from .gcc import GccPhat, gcc_phat, gcc_phat_spectra
 from .toa import FixedLagKalmanToa, KalmanToa, PinvToa, SubsetToa, ToaEstimator
 from .multipeak import NoiseAwareGcc
 from .tracks import SourceTracker, Track
-from .chirps import ChirpTdoas, detect_chirps, extract_tdoas, gcc_phat_delays, linear_chirp, matched_filter
+from .chirps import ChirpDetector, ChirpTdoas, detect_chirps, extract_tdoas, gcc_phat_delays, linear_chirp, matched_filter
 from .hybrid_tdoa import (CalibrationResult, CrlbResult, HybridTdoaProblem, MicFrameScene, NoiseLevels, Scene,
                           crlb, estimate_noise_levels, mic_frame_error, random_initial_scene, simulate_problem,
                           to_mic_frame)
@@ -33,6 +33,7 @@ __all__ = [
     "NoiseAwareGcc",
     "SourceTracker",
     "Track",
+    "ChirpDetector",
     "ChirpTdoas",
     "detect_chirps",
     "extract_tdoas",

@@ -14,7 +14,9 @@ Missed chirps are NaN. Signals are 1-D float arrays (one channel per device); ti
 """
 from __future__ import annotations
 
+import collections
 import dataclasses
+import math
 
 import numpy as np
 import scipy.signal
@@ -267,3 +269,142 @@ def extract_tdoas(streams: list[np.ndarray], template: np.ndarray, *, sample_rat
             refined = rough + d[q]
             tdoa_m[j, i] = refined if abs(refined - mf) <= max_refine_s else mf
     return ChirpTdoas(tdoa_events_s=tdoa_s, tdoa_mics_s=tdoa_m, onsets_s=onsets)
+
+
+class ChirpDetector:
+    """Matched filter for a known chirp on one device's conditioned stream, in fixed blocks (overlap-save).
+
+    Any split of the input gives the same detections (the FFT blocks do not depend on it). Per block of
+    ``block_samples`` (about 3 template lengths): one real FFT, one complex inverse FFT of the analytic
+    correlation (its magnitude is the envelope, its real part the exact correlation), a median for the noise
+    level (the median of the last ``noise_blocks`` block medians), and peak picking: envelope peaks above
+    ``threshold`` x ``1.4826`` x noise, the largest within ``min_separation_s``; then the first arrival: the
+    earliest envelope peak at most ``first_arrival_s`` before it and at least ``first_arrival_ratio`` of it (a
+    reflection off a nearby surface can beat the direct path); the onset is the sub-sample maximum of the
+    correlation within 1 ms of that peak (as :func:`estimators.detect_chirps`). Memory is bounded: one FFT
+    block of input, two blocks (plus the look-back) of correlation, ``noise_blocks`` medians.
+    """
+
+    def __init__(self, template: np.ndarray, *, sample_rate_hz: float, min_separation_s: float,
+                 threshold: float = 10.0, noise_blocks: int = 8, first_arrival_s: float = 0.02,
+                 first_arrival_ratio: float = 0.5) -> None:
+        h = np.asarray(template, float)
+        if h.ndim != 1 or len(h) < 8:
+            raise ValueError(f"template shape {h.shape} must be 1-D with >= 8 samples")
+        if not min_separation_s > 0:
+            raise ValueError(f"{min_separation_s=} must be > 0 s")
+        self.sample_rate_hz = float(sample_rate_hz)
+        self.template_samples = len(h)
+        self.nfft = max(1024, 1 << int(math.ceil(math.log2(4 * len(h)))))
+        self.block_samples = self.nfft - len(h) + 1
+        u = np.zeros(self.nfft)
+        u[0] = 1.0
+        u[1:self.nfft // 2] = 2.0
+        u[self.nfft // 2] = 1.0
+        self._filter = np.conj(np.fft.fft(h, self.nfft)) * u     # analytic correlation in one inverse FFT
+        self.threshold = float(threshold)
+        self.separation_samples = max(1, int(min_separation_s * sample_rate_hz))
+        self._half = max(2, int(0.001 * sample_rate_hz))
+        self._lookback = int(first_arrival_s * sample_rate_hz)
+        self.first_arrival_ratio = float(first_arrival_ratio)
+        self._floor = 1e-9 * float(np.sqrt(np.sum(h * h)))
+        self._medians: collections.deque = collections.deque(maxlen=noise_blocks)
+        self._buf = np.zeros(0, np.float64)   # input from index self._buf_start on
+        self._buf_start = 0
+        self._corr = np.zeros(0)              # real correlation of the last two blocks (+ the look-back)
+        self._env = np.zeros(0)               # its envelope
+        self._corr_start = 0
+        self.processed = 0                    # correlation computed for onsets < processed
+        self._pending: list | None = None     # [index, envelope, onset or None, snr]
+        self.ended = False
+
+    @property
+    def final_before(self) -> float:
+        """Onsets below this index are final: a later detection cannot replace them."""
+        return math.inf if self.ended else float(self.processed - self.separation_samples - self._half)
+
+    def process(self, samples: np.ndarray, *, last: bool = False) -> list[tuple[float, float]]:
+        """Feed conditioned samples (the next ones of the device's stream); return ``(onset_samples, snr)`` of
+        the chirps that became final."""
+        out: list[tuple[float, float]] = []
+        if len(samples):
+            self._buf = np.concatenate([self._buf, np.asarray(samples, np.float64)])
+        while len(self._buf) >= self.nfft:
+            self._block(self._buf[:self.nfft], out, self.block_samples)
+        if last and not self.ended:
+            n_valid = len(self._buf)
+            self._buf = np.concatenate([self._buf, np.zeros(self.nfft)])
+            while n_valid > 0:
+                self._block(self._buf[:self.nfft], out, min(n_valid, self.block_samples))
+                n_valid -= self.block_samples
+            self._buf = np.zeros(0)
+            self.ended = True
+            self._finalise(out, force=True)
+        return out
+
+    def _block(self, seg: np.ndarray, out: list, n_onsets: int) -> None:
+        """Correlation for the onsets ``[start, start + n_onsets)`` from ``seg`` (nfft samples from start)."""
+        half = np.fft.rfft(seg, self.nfft)
+        spec = np.zeros(self.nfft, complex)
+        spec[:len(half)] = half
+        z = np.fft.ifft(spec * self._filter)[:n_onsets]
+        env = np.abs(z)
+        start = self._buf_start
+        self._buf = self._buf[self.block_samples:]
+        self._buf_start += self.block_samples
+        self._medians.append(float(np.median(env)))
+        noise = max(1.4826 * float(np.median(self._medians)), self._floor)
+        keep = self.block_samples + self._lookback
+        self._corr = np.concatenate([self._corr[-keep:], z.real])
+        self._env = np.concatenate([self._env[-keep:], env])
+        self._corr_start = start + n_onsets - len(self._corr)
+        above = np.flatnonzero(env > self.threshold * noise)
+        if len(above):
+            left = np.r_[-np.inf, env[:-1]][above]
+            right = np.r_[env[1:], -np.inf][above]
+            for i in above[(env[above] >= left) & (env[above] >= right)]:
+                n = start + int(i)
+                p = self._pending
+                if p is not None and n - p[0] > self.separation_samples:
+                    self._emit(out)
+                    p = None
+                if p is None or env[i] > p[1]:
+                    self._pending = [n, float(env[i]), None, float(env[i] / noise)]
+        self.processed = start + n_onsets
+        self._finalise(out)
+
+    def _finalise(self, out: list, *, force: bool = False) -> None:
+        p = self._pending
+        if p is None:
+            return
+        if p[2] is None and (p[0] + self._half < self.processed or force):
+            self._refine(p)
+        if force or p[0] + self.separation_samples < self.processed:
+            self._emit(out)
+
+    def _emit(self, out: list) -> None:
+        p, self._pending = self._pending, None
+        if p[2] is None:
+            self._refine(p)
+        out.append((float(p[2]), float(p[3])))
+
+    def _refine(self, p: list) -> None:
+        """First arrival before the envelope peak, then the sub-sample maximum of the correlation near it."""
+        b0 = self._corr_start
+        lo = max(p[0] - self._lookback - b0, 1)
+        hi = min(p[0] - b0, len(self._env) - 1)
+        peak = p[0]
+        if hi > lo:
+            e = self._env
+            w = np.arange(lo, hi)
+            cand = w[(e[w] >= e[w - 1]) & (e[w] >= e[w + 1]) & (e[w] >= self.first_arrival_ratio * p[1])]
+            if len(cand):
+                peak = b0 + int(cand[0])
+        lo = max(peak - self._half - b0, 0)
+        hi = min(peak + self._half + 1 - b0, len(self._corr))
+        if hi > lo:
+            seg = self._corr[lo:hi]
+            k = int(np.argmax(seg))
+            p[2] = b0 + lo + k + parabolic_offset(seg, k)
+        else:  # pragma: no cover - the correlation buffer always covers a pending peak
+            p[2] = float(peak)

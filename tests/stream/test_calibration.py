@@ -20,7 +20,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import estimators
-from stream.calibration import (ChirpDetector, CalibrationSnapshot, OdometryLog, StreamCalibrator, calibrate,
+from estimators import ChirpDetector
+from stream.calibration import (CalibrationSnapshot, OdometryLog, StreamCalibrator, calibrate,
                                 load_measurements, load_odometry_csv)
 from stream.condition import ClockMap, RetunableConditioner
 from stream.cli import main
