@@ -63,7 +63,12 @@ class StatusLine:
         load = (cpu - self._t[1]) / max(wall - self._t[0], 1e-9)
         self._t = (wall, cpu)
         fs = pipeline.config.working_rate_hz
-        parts = [f"{pipeline.counters.n_blocks * pipeline.config.hop_samples / fs:7.1f} s"]
+        ref = self.source.active[0]
+        captured_s = ref.n_read_samples / ref.sample_rate_hz
+        parts = [f"{captured_s:7.1f} s"]
+        if not pipeline.aligner.ready:   # the first output comes once every device has filled the window
+            need_s = (pipeline.aligner.window_samples / fs) + pipeline.aligner.max_offset_s
+            parts[0] += f" (aligning the devices: first output after {need_s:.1f} s)"
         levels = 10 * np.log10(np.maximum(self._level, 1e-12)) if self._level is not None else []
         for d, (info, lvl) in enumerate(zip(self.source.active, levels)):
             clip = pipeline.conditioners[d].counters.n_clipped_samples
@@ -169,10 +174,10 @@ def run_live(inputs: Sequence[str], out_dir: str | Path, *, output: str | None =
         def close(self) -> None:   # closed with the report (extra below), after the stream
             pass
 
+    if status:   # from the first frame on, so that the levels are there at the first line
+        state["status"] = StatusLine(source, None, stream=None if status is True else status)
+
     def status_cb(pipeline) -> None:
-        if "status" not in state:
-            stream = None if status is True else status
-            state["status"] = StatusLine(source, state.get("playback"), stream=stream)
         state["status"].playback = state.get("playback")
         state["status"](pipeline)
 

@@ -454,7 +454,7 @@ def _plots(out: Path, pipeline: Pipeline, fixture: Fixture | None, report: dict,
                               true_toa_s=true_toa, gated=gated, device_names=dev_names,
                               title=f"Relative TOA ({cfg.estimator})")
         if pipeline.tracker is not None and pipeline.state.source_tracks:
-            index = [names.index(n) for n in dev_names]
+            index = [names.index(n) for n in dev_names] if names else list(range(len(dev_names)))
             truth = None
             if fixture is not None and fixture.sources:
                 truth = {}

@@ -211,3 +211,14 @@ def test_a_re_check_over_the_silence_after_the_end_does_not_move_devices(tmp_pat
     assert out.report["stream"]["coarse_offsets_s"] == ref.report["stream"]["coarse_offsets_s"]
     assert out.report["sources"]["n_speech_frames"] > 100
     assert any(t["kind"] == "speech" for t in out.report["sources"]["tracks"])
+
+
+def test_tracks_on_plain_files_draw_every_plot(tmp_path):
+    """A fixture's recordings named one by one (no fixture: no names, no truth): the sources plot is drawn
+    too, and nothing warns."""
+    from tests.conftest import REPO_FIXTURES
+    paths = sorted((REPO_FIXTURES / "meeting_table").glob("dev*.flac"))
+    out = run_replay(paths, tmp_path / "o", config=EngineConfig(estimator="tracks", progress=False))
+    assert not [m for m in out.report["messages"] if "could not be drawn" in m]
+    assert out.pipeline.state.source_tracks
+    assert (tmp_path / "o" / "sources.png").is_file() and (tmp_path / "o" / "toa_tracks.png").is_file()
