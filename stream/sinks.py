@@ -11,6 +11,18 @@ import numpy as np
 import soundfile as sf
 
 
+_SFC_RF64_AUTO_DOWNGRADE = 0x1210   # libsndfile: write RF64, rewrite as WAV at close if under 4 GiB
+
+
+def open_wav(path: str | Path, *, sample_rate_hz: float, channels: int) -> sf.SoundFile:
+    """A float32 WAV file for writing that may grow past 4 GiB (a long live session): RF64, which libsndfile
+    turns back into an ordinary WAV (WAVE_FORMAT_EXTENSIBLE) at close when it stayed under 4 GiB."""
+    f = sf.SoundFile(str(path), "w", samplerate=int(round(sample_rate_hz)), channels=channels, subtype="FLOAT",
+                     format="RF64")
+    sf._snd.sf_command(f._file, _SFC_RF64_AUTO_DOWNGRADE, sf._ffi.NULL, 1)
+    return f
+
+
 class WavSink:
     """Streams mono float32 audio into a WAV file; as a hop sink (``write(HopResult)``), the enhanced audio.
 
@@ -31,8 +43,7 @@ class WavSink:
     def __init__(self, path: str | Path, *, sample_rate_hz: float, skip_samples: int = 0,
                  max_samples: int | None = None, buffer_samples: int = 8192) -> None:
         self.path = Path(path)
-        self._file = sf.SoundFile(str(self.path), "w", samplerate=int(round(sample_rate_hz)), channels=1,
-                                  subtype="FLOAT")
+        self._file = open_wav(self.path, sample_rate_hz=sample_rate_hz, channels=1)
         self._skip = int(skip_samples)
         self.max_samples = max_samples
         self.n_written = 0          # samples accepted (written or buffered)
@@ -101,9 +112,8 @@ class RecordingSink:
         x2 = x[:, None] if x.ndim == 1 else x
         f = self._files[d]
         if f is None:
-            f = self._files[d] = sf.SoundFile(str(self.folder / self.file_names[d]), "w",
-                                              samplerate=int(round(frame.sample_rate_hz)),
-                                              channels=max(1, x2.shape[1]), subtype="FLOAT")
+            f = self._files[d] = open_wav(self.folder / self.file_names[d], sample_rate_hz=frame.sample_rate_hz,
+                                          channels=max(1, x2.shape[1]))
         gap = int(frame.first_sample) - self._next[d]
         if gap > 0:
             f.write(np.zeros((gap, f.channels), np.float32))

@@ -222,3 +222,15 @@ def test_tracks_on_plain_files_draw_every_plot(tmp_path):
     assert not [m for m in out.report["messages"] if "could not be drawn" in m]
     assert out.pipeline.state.source_tracks
     assert (tmp_path / "o" / "sources.png").is_file() and (tmp_path / "o" / "toa_tracks.png").is_file()
+
+
+def test_output_wavs_may_outgrow_4_gib_and_stay_plain_wav_when_small(tmp_path):
+    """enhanced.wav and recordings are opened as RF64 (no 4 GiB limit over a long session); a file that stayed
+    small is an ordinary RIFF/WAVE file after closing."""
+    from stream.sinks import WavSink
+    w = WavSink(tmp_path / "e.wav", sample_rate_hz=FS)
+    w.write_samples(np.ones(1000, np.float32))
+    w.close()
+    assert (tmp_path / "e.wav").read_bytes()[:4] == b"RIFF"
+    x, rate = sf.read(tmp_path / "e.wav", dtype="float32")
+    assert rate == FS and len(x) == 1000 and x.min() == 1.0
