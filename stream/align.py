@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import concurrent.futures
 import logging
+import time
 from typing import Iterator
 from dataclasses import dataclass
 
@@ -220,6 +221,11 @@ class Aligner:
         Re-check the offsets on the last ``align_window_s`` of audio every ``recheck_s`` seconds.
     recheck_tolerance_s : float
         A re-check moves a device only if its offset changed by more than this.
+    deadline_s : float or None
+        A device that delivered nothing for this long (wall clock) while the others did is late: the blocks it
+        lacks go out without it (invalid, zeros; one sentence) and it is back as soon as its samples come in
+        time. A replay as fast as possible is never late (any split of the input gives the same blocks). None:
+        wait for every device (a stalled device then stalls the stream).
     recheck_delay_s : float
         A re-check runs in a worker thread (a long correlation must not stall the audio path) and its result
         is applied this many seconds of stream later, waiting for it only if it is not done by then: live,
@@ -228,7 +234,8 @@ class Aligner:
 
     def __init__(self, n_devices: int, *, sample_rate_hz: float, hop_samples: int, align_window_s: float = 8.0,
                  max_offset_s: float = 4.0, min_quality: float = 0.15, recheck_s: float | None = 10.0,
-                 recheck_tolerance_s: float = 0.01, recheck_delay_s: float = 0.5) -> None:
+                 recheck_tolerance_s: float = 0.01, recheck_delay_s: float = 0.5,
+                 deadline_s: float | None = 2.0) -> None:
         if n_devices < 1:
             raise ValueError(f"{n_devices=} must be >= 1")
         if hop_samples < 1:
@@ -246,6 +253,10 @@ class Aligner:
         self.recheck_delay_blocks = max(1, int(recheck_delay_s * sample_rate_hz / hop_samples))
         self._pending: tuple | None = None
         self._waiting_for: int | None = None   # the device the next block waits for (see push)
+        self.deadline_s = deadline_s
+        self._last_data_s = [time.monotonic()] * n_devices
+        self._late = [False] * n_devices
+        self.n_late_blocks = np.zeros(n_devices, dtype=np.int64)
         self._corrected = np.zeros(n_devices, bool)
         self._bufs = [_SampleBuffer() for _ in range(n_devices)]
         self._buf_start = [0] * n_devices     # device sample index of _bufs[d][0]
@@ -269,10 +280,12 @@ class Aligner:
         if len(samples):
             self._bufs[device_id].append(samples)
             self._received[device_id] += len(samples)
+            if self.deadline_s is not None:
+                self._last_data_s[device_id] = time.monotonic()
         if int(flags) & _LAST:
             self._ended[device_id] = True
-        elif self._waiting_for is not None and self._waiting_for != device_id:
-            return iter(())   # the next block waits for another device: nothing new (cheap: most pushes)
+        elif self._waiting_for is not None and self._waiting_for != device_id and not self._overdue():
+            return iter(())   # the next block waits for another device, not yet late: nothing new (most pushes)
         return self._emit()
 
     def finish(self) -> Iterator[Block]:
@@ -281,6 +294,37 @@ class Aligner:
         return self._emit()
 
     # alignment -------------------------------------------------------------------------------
+    def _late_devices(self) -> set[int]:
+        """Devices (not ended) that delivered nothing for ``deadline_s`` (wall clock) while another did: the
+        blocks they lack go out without them. A replay as fast as possible has none."""
+        if self.deadline_s is None:
+            return set()
+        now = time.monotonic()
+        live = [d for d in range(self.n_devices) if not self._ended[d]]
+        if not live or max(self._last_data_s[d] for d in live) < now - self.deadline_s:
+            return set()   # nobody delivers: nobody is late, the stream waits
+        return {d for d in live if self._last_data_s[d] < now - self.deadline_s}
+
+    def _overdue(self) -> bool:
+        """Whether any device is late (:meth:`_late_devices`)."""
+        return bool(self._late_devices()) if self.deadline_s is not None else False
+
+    def _note_late(self, end: int) -> None:
+        """One sentence when a device falls behind the deadline, one when it has caught up; count its blocks."""
+        t_s = end / self.sample_rate_hz
+        for d in range(self.n_devices):
+            late = not self._ended[d] and self._received[d] < end + int(self.offsets_samples[d])
+            if late:
+                self.n_late_blocks[d] += 1
+            if late and not self._late[d]:
+                msg = (f"t={t_s:.2f} s: device {d} delivered nothing for {self.deadline_s:g} s while the others "
+                       "did; the stream goes on without it until it catches up.")
+                self.messages.append(msg)
+                log.warning(msg)
+            elif not late and self._late[d]:
+                log.info("t=%.2f s: device %d has caught up and is back in the stream.", t_s, d)
+            self._late[d] = late
+
     def _initial_alignment(self) -> None:
         ref = self._bufs[0].data[: self.window_samples].copy()
         for d in range(1, self.n_devices):
@@ -368,9 +412,10 @@ class Aligner:
 
     def _emit(self) -> Iterator[Block]:
         if not self.ready:
-            have = all(self._ended[d] or self._received[d] >= self.window_samples
-                       + (int(self.max_offset_s * self.sample_rate_hz) if d else 0) for d in range(self.n_devices))
-            if not have:
+            need = [self.window_samples + (int(self.max_offset_s * self.sample_rate_hz) if d else 0)
+                    for d in range(self.n_devices)]
+            have = all(self._ended[d] or self._received[d] >= need[d] for d in range(self.n_devices))
+            if not have and not (self._overdue() and self._received[0] >= need[0]):
                 return
             self._initial_alignment()
         hop = self.hop_samples
@@ -384,8 +429,13 @@ class Aligner:
                 lacking = next((d for d in range(self.n_devices) if not self._ended[d]
                                 and self._received[d] < end + self.offsets_samples[d]), None)
                 if lacking is not None:
-                    self._waiting_for = lacking
-                    break
+                    late = self._late_devices()
+                    waiting = next((d for d in range(self.n_devices) if not self._ended[d] and d not in late
+                                    and self._received[d] < end + self.offsets_samples[d]), None)
+                    if waiting is not None or len(late) == self.n_devices - sum(self._ended):
+                        self._waiting_for = lacking if waiting is None else waiting
+                        break
+                self._note_late(end)
             self._waiting_for = None
             if self._pending is not None and k >= self._pending[0]:
                 self._apply_recheck()
@@ -414,7 +464,7 @@ class Aligner:
         keep = self.window_samples + self.hop_samples
         for d in range(self.n_devices):
             pos = self.next_block * self.hop_samples + int(self.offsets_samples[d])
-            cut = pos - keep - self._buf_start[d]
+            cut = min(pos - keep - self._buf_start[d], len(self._bufs[d]))   # a late device has less
             if cut > 4 * keep:  # amortise the copy
                 self._bufs[d].drop_front(cut)
                 self._buf_start[d] += cut

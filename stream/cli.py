@@ -45,6 +45,8 @@ def _add_engine_options(p: argparse.ArgumentParser) -> None:
     g.add_argument("--align-window-s", type=float, help="audio used for the coarse start alignment")
     g.add_argument("--max-offset-s", type=float, help="largest start offset between devices searched")
     g.add_argument("--align-recheck-s", type=float, help="re-check the coarse alignment every this many seconds")
+    g.add_argument("--device-deadline-s", type=float,
+                   help="a device this far behind the others is left out until it catches up (default 2 s)")
     g.add_argument("--speed", type=float, help="pace the replay: 1.0 = real time (default: as fast as possible)")
     g.add_argument("--block-s", type=float, help="replay block length in seconds")
     g.add_argument("--no-plots", dest="plots", action="store_const", const=False, help="skip the PNG plots")

@@ -74,6 +74,7 @@ class EngineConfig:
     align_window_s: float = 8.0
     max_offset_s: float = 4.0
     align_recheck_s: float = 10.0
+    device_deadline_s: float | None = 2.0          # a device this far behind the others is left out until it catches up
     # replay
     speed: float | None = None
     block_s: float = 0.05
@@ -145,6 +146,8 @@ class EngineConfig:
         for name in ("max_tdoa_s", "accel_std_s_per_s2", "tdoa_std_s", "align_window_s", "block_s"):
             if not getattr(self, name) > 0:
                 raise ConfigError(f"{name}={getattr(self, name)} must be > 0")
+        if self.device_deadline_s is not None and not self.device_deadline_s > 0:
+            raise ConfigError(f"device_deadline_s={self.device_deadline_s} must be > 0 seconds (or absent)")
         if not 0 < self.gate_probability < 1:
             raise ConfigError(f"gate_probability={self.gate_probability} must be in (0, 1)")
         if self.speed is not None and not self.speed > 0:

@@ -203,7 +203,7 @@ class Pipeline:
             calibrator.bind([c.clock for c in self.conditioners])
         self.aligner = Aligner(self.n_devices, sample_rate_hz=fs, hop_samples=config.hop_samples,
                                align_window_s=config.align_window_s, max_offset_s=config.max_offset_s,
-                               recheck_s=config.align_recheck_s)
+                               recheck_s=config.align_recheck_s, deadline_s=config.device_deadline_s)
         self.stft = beamform.StreamingStft(self.n_devices, frame_samples=config.frame_samples,
                                            hop_samples=config.hop_samples)
         self.gcc = None

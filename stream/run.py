@@ -365,6 +365,7 @@ def _finalise(report, out, cfg, pipeline, fixture, names, paths, collector, t_wa
             "alignment_quality": pipeline.aligner.quality.tolist(),
             "aligned": pipeline.aligner.aligned.tolist(),
             "alignment_events": [vars(e) for e in pipeline.alignment_events],
+            "late_blocks": pipeline.aligner.n_late_blocks.tolist(),
             "final_channel_weights": np.asarray(pipeline.das.channel_weights, float).tolist(),
             "observed_drift_ppm": observed_drift_ppm(*pipeline.toa_track()).tolist(),
         }

@@ -234,3 +234,32 @@ def test_output_wavs_may_outgrow_4_gib_and_stay_plain_wav_when_small(tmp_path):
     assert (tmp_path / "e.wav").read_bytes()[:4] == b"RIFF"
     x, rate = sf.read(tmp_path / "e.wav", dtype="float32")
     assert rate == FS and len(x) == 1000 and x.min() == 1.0
+
+
+class _StallingSource(ReplaySource):
+    """Paced at 4x real time; device 2 delivers nothing from 4 s to 7 s of the stream (0.75 s of wall time: its
+    frames are held back, as a stalled card's or a lost network link's), then resumes with the index of its next
+    sample (the gap is in its clock)."""
+
+    def __iter__(self):
+        for frame in super().__iter__():
+            if frame.device_id == 2 and 4 * FS <= frame.first_sample < 7 * FS:
+                continue
+            yield frame
+
+
+def test_a_late_device_does_not_stall_the_others(make_devices, tmp_path):
+    paths, _, _ = make_devices([0.0, 0.0004, -0.0003], duration_s=10.0)
+    cfg = EngineConfig(plots=False, progress=False, align_window_s=2.0, max_offset_s=0.5, device_deadline_s=0.25)
+    out = run_stream(_StallingSource(paths, block_s=0.05, speed=4.0), tmp_path / "o", config=cfg,
+                     handle_signals=False)
+    st = out.report["stream"]
+    hop = out.pipeline.config.hop_samples
+    assert st["n_blocks"] == 10 * FS // hop
+    # device 2 is left out of the blocks of its stall (3 s of stream; those waiting when the 0.25 s deadline
+    # passed included); the others went on, and it was back right after
+    assert 2.5 * FS / hop <= st["late_blocks"][2] <= 3.3 * FS / hop and st["late_blocks"][:2] == [0, 0]
+    assert any("device 2 delivered nothing for 0.25 s while the others did" in m for m in out.report["messages"])
+    valid = np.asarray(out.pipeline.state.valid)
+    t = np.asarray(out.pipeline.state.time_s)
+    assert valid[(t > 6.0) & (t < 6.8), 2].sum() == 0 and valid[t > 8.0, 2].mean() > 0.9
