@@ -202,8 +202,9 @@ def summary(report: dict[str, Any], out: Path) -> str:
                                             f"{c['n_gaps']} gaps)" for c in cards["inputs"]))
         if "output" in cards:
             o = cards["output"]
-            lines.append(f"  output {o['card']}: {o['n_underflows']} underflows, {o['n_dropped_samples']} samples "
-                         "dropped to stay live")
+            skipped = o["n_dropped_samples"] / st["working_rate_hz"] if st else 0.0
+            lines.append(f"  output {o['card']}: {o['n_underflows']} underflows; {skipped:.1f} s of output skipped to "
+                         "stay live (the start-up alignment releases its audio at once)")
         if "recorded_to" in cards:
             lines.append(f"  raw inputs recorded to {cards['recorded_to']} (adhoc-array replay {cards['recorded_to']})")
     problems = [p for d in report.get("devices", []) for p in d.get("problems", [])]

@@ -156,7 +156,10 @@ def run_live(inputs: Sequence[str], out_dir: str | Path, *, output: str | None =
 
     def on_frame(frame) -> None:
         if "recorder" not in state and record is not None:
-            state["recorder"] = sinks.RecordingSink(record, source.active,
+            defaults = EngineConfig().as_dict()
+            engine = {k: v for k, v in cfg.as_dict().items()
+                      if v != defaults[k] and k not in ("plots", "progress", "speed", "block_s")}
+            state["recorder"] = sinks.RecordingSink(record, source.active, engine=engine,
                                                     description=f"adhoc-array live --input {' --input '.join(inputs)}")
         if record is not None:
             state["recorder"].write(frame)

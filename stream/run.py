@@ -52,13 +52,15 @@ class _Collector(logging.Handler):
 
 
 def resolve_inputs(inputs: Sequence[str | Path]) -> tuple[list[Path], list[str] | None, Fixture | None]:
-    """Files per device, their names, and the fixture when ``inputs`` is one fixture folder."""
+    """Files per device, their names, and the fixture when ``inputs`` is one fixture folder (a recorded folder's
+    engine options: :func:`recording_engine`)."""
     if not inputs:
         raise InputFileError("No input was given; pass a fixture folder or one audio file per device.")
     if len(inputs) == 1 and Path(inputs[0]).is_dir():
         root = Path(inputs[0])
         if (root / sinks.RecordingSink.MANIFEST).is_file():
-            return (*_load_recording(root / sinks.RecordingSink.MANIFEST), None)
+            paths, names, _ = _load_recording(root / sinks.RecordingSink.MANIFEST)
+            return paths, names, None
         if not is_fixture_dir(root):
             raise InputFileError(f"{root} is a folder without a fixture.toml or {sinks.RecordingSink.MANIFEST}; "
                                  "pass the audio files themselves.")
@@ -67,8 +69,16 @@ def resolve_inputs(inputs: Sequence[str | Path]) -> tuple[list[Path], list[str] 
     return [Path(p) for p in inputs], None, None
 
 
-def _load_recording(manifest: Path) -> tuple[list[Path], list[str]]:
-    """Files and names of a folder written by ``adhoc-array live --record``."""
+def recording_engine(inputs: Sequence[str | Path]) -> tuple[dict[str, Any], str] | None:
+    """The ``[engine]`` options of a recorded folder (``adhoc-array live --record``), with their source."""
+    if len(inputs) == 1 and (Path(inputs[0]) / sinks.RecordingSink.MANIFEST).is_file():
+        manifest = Path(inputs[0]) / sinks.RecordingSink.MANIFEST
+        return _load_recording(manifest)[2], f"{manifest} [engine]"
+    return None
+
+
+def _load_recording(manifest: Path) -> tuple[list[Path], list[str], dict[str, Any]]:
+    """Files, names and engine options of a folder written by ``adhoc-array live --record``."""
     try:
         import tomllib
     except ModuleNotFoundError:  # Python 3.10
@@ -78,11 +88,12 @@ def _load_recording(manifest: Path) -> tuple[list[Path], list[str]]:
         rows = doc["device"]
         paths = [manifest.parent / str(r["file"]) for r in rows]
         names = [str(r["name"]) for r in rows]
+        engine = dict(doc.get("engine", {}))
     except (tomllib.TOMLDecodeError, UnicodeDecodeError, KeyError, TypeError) as err:
         raise InputFileError(f"{manifest} is not a valid recording manifest ({type(err).__name__}: {err}).") from None
     if not paths:
         raise InputFileError(f"{manifest} lists no device.")
-    return paths, names
+    return paths, names, engine
 
 
 def make_calibrator(cfg: EngineConfig, n_devices: int, out: Path, *, device_names: Sequence[str] = (),
@@ -147,7 +158,8 @@ def run_replay(inputs: Sequence[str | Path], out_dir: str | Path, *, config: Eng
         then each ``(values, source)`` of ``overrides`` in order (a config file, then the CLI).
     """
     paths, names, fixture = resolve_inputs(inputs)
-    cfg = _layered(config or EngineConfig(), fixture, overrides)
+    recorded = recording_engine(inputs)
+    cfg = _layered(config or EngineConfig(), fixture, [recorded, *overrides] if recorded else overrides)
     source = ReplaySource(paths, block_s=cfg.block_s, speed=cfg.speed, names=names)
     return run_stream(source, out_dir, config=cfg, fixture=fixture, names=names, solver=solver,
                       on_geometry=on_geometry, speech=speech)

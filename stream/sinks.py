@@ -88,14 +88,17 @@ class WavSink:
 class RecordingSink:
     """Writes every device's raw input (its own rate, its channels, its own clock) into a folder that
     ``adhoc-array replay DIR`` accepts unchanged: one float WAV per device and ``recording.toml`` naming them
-    in device order. A gap in a device's stream (lost samples) is written as zeros, so each file stays on
+    in device order, with an ``[engine]`` table of the options the stream ran with (a replay applies them, so
+    it gives the same output). A gap in a device's stream (lost samples) is written as zeros, so each file stays on
     the device's clock.
     """
 
     MANIFEST = "recording.toml"
 
-    def __init__(self, folder: str | Path, devices: Sequence[Any], *, description: str = "") -> None:
+    def __init__(self, folder: str | Path, devices: Sequence[Any], *, description: str = "",
+                 engine: dict[str, Any] | None = None) -> None:
         self.folder = Path(folder)
+        self.engine = {k: v for k, v in (engine or {}).items() if v is not None}
         self.folder.mkdir(parents=True, exist_ok=True)
         self.devices = list(devices)
         self.description = description
@@ -138,6 +141,8 @@ class RecordingSink:
                 if getattr(d, key, None):
                     lines.append(f"{key} = {json.dumps(getattr(d, key))}")
             lines.append("")
+        if self.engine:   # the options the stream ran with: a replay of the folder applies them (as a fixture's)
+            lines += ["[engine]", *[f"{k} = {json.dumps(v)}" for k, v in sorted(self.engine.items())], ""]
         (self.folder / self.MANIFEST).write_text("\n".join(lines), encoding="utf-8")
 
     def close(self) -> None:

@@ -18,7 +18,6 @@ import numpy as np
 import pytest
 import soundfile as sf
 
-from stream import metrics
 from stream.errors import AudioDeviceError, StreamError
 from stream.fixture import load_fixture
 
@@ -97,8 +96,8 @@ def test_capture_of_a_multichannel_signal_is_bit_exact(jack, bay):
 
 
 def test_live_equals_replay_and_the_recording_replays_exactly(jack, bay, tmp_path):
-    """meeting_table's six phones played into the card: the recording is bit-exact, replaying it gives the
-    live output sample for sample, and the live output scores as the fixture's replay does (same settings)."""
+    """meeting_table's six phones played into the card: the recording is bit-exact, and replaying it, or the
+    fixture's files with the same lead of silence, gives the live output sample for sample."""
     from stream.live import LIVE_DEFAULTS, run_live
     from stream.run import run_replay
     fx = load_fixture(REPO_FIXTURES / "meeting_table")
@@ -108,38 +107,34 @@ def test_live_equals_replay_and_the_recording_replays_exactly(jack, bay, tmp_pat
                     record=tmp_path / "take", max_duration_s=8.5, status=False,
                     names=[d.name for d in fx.devices])
     rep = live.report
-    assert rep["status"] == "ok" and rep["live"] is True
-    assert rep["cards"]["output"]["n_underflows"] <= 2
-    assert all(c["n_overflows"] == 0 and c["n_gaps"] == 0 for c in rep["cards"]["inputs"])
+    assert rep["status"] == "ok" and rep["live"] is True, rep.get("error")
+    # nothing lost on the way in (output underflows, a hiccup of a loaded machine, are counted, not tested here:
+    # benchmarks/live_soak.py measures them)
+    assert all(c["n_overflows"] == 0 and c["n_gaps"] == 0 for c in rep["cards"]["inputs"]), rep["cards"]
     # the recording: each device's file is the fixture's, after the same lead of digital silence
     rec = [sf.read(tmp_path / "take" / f"dev{k:02d}_{d.name}.wav", dtype="float32")[0] for k, d in
            enumerate(fx.devices)]
     lead = _lead(rec[0])
     for x, d in zip(rec, sig.T):
         n = min(len(d), len(x) - lead)
-        assert _lead(x) == lead and n > 6 * RATE
-        assert np.array_equal(x[lead:lead + n], d[:n])
-    # replaying the recorded folder gives the live output exactly
-    again = run_replay([tmp_path / "take"], tmp_path / "again",
-                       overrides=[(dict(LIVE_DEFAULTS, plots=False), "test")])
+        assert _lead(x) == lead and n > 6 * RATE, (lead, _lead(x), n, rep["cards"])
+        assert np.array_equal(x[lead:lead + n], d[:n]), rep["cards"]
+    # replaying the recorded folder gives the live output exactly (recording.toml carries the live options)
+    again = run_replay([tmp_path / "take"], tmp_path / "again", overrides=[({"plots": False}, "test")])
     y_live = sf.read(tmp_path / "live" / "enhanced.wav", dtype="float32")[0]
     y_again = sf.read(tmp_path / "again" / "enhanced.wav", dtype="float32")[0]
     assert again.report["status"] == "ok"
     np.testing.assert_array_equal(y_live, y_again)
-    # against the fixture's replay with the same settings (frame, hop, alignment): same quality within
-    # 0.5 dB SI-SDR, and the two outputs agree to >= 10 dB (the live one starts `lead` samples later, so its
-    # hops fall elsewhere in the signal)
-    cfg = live.pipeline.config
-    ref = run_replay([REPO_FIXTURES / "meeting_table"], tmp_path / "replay", overrides=[(
-        dict(LIVE_DEFAULTS, frame_samples=cfg.frame_samples, hop_samples=cfg.hop_samples, plots=False), "test")])
-    y_ref = ref.pipeline.enhanced_signal()
-    y = y_live[lead:lead + len(y_ref)]
-    n = min(len(y), len(y_ref))
-    assert metrics.si_sdr_db(y[:n], y_ref[:n]) >= 10.0
-    clean = fx.load_clean()[0][:n]
-    s_live = metrics.si_sdr_db(metrics.align_to_reference(y[:n], clean, max_lag_samples=800)[0], clean)
-    s_ref = metrics.si_sdr_db(metrics.align_to_reference(y_ref[:n], clean, max_lag_samples=800)[0], clean)
-    assert abs(s_live - s_ref) <= 0.5, (s_live, s_ref)
+    # replaying the fixture's own files, with the lead of silence the card delivered before the playback started
+    # and the same length, gives the live output exactly (the engine's result depends on where its hops fall
+    # in the signal, so the lead must be the same: with 100 samples instead of 1408, SI-SDR moved by -4.7 dB)
+    files = []
+    for k, (x, d) in enumerate(zip(rec, sig.T)):
+        files.append(tmp_path / f"fx{k}.wav")
+        sf.write(files[-1], np.r_[np.zeros(lead, np.float32), d, np.zeros(len(x) - lead - len(d), np.float32)]
+                 if len(x) >= lead + len(d) else np.r_[np.zeros(lead, np.float32), d][:len(x)], RATE, subtype="FLOAT")
+    ref = run_replay(files, tmp_path / "replay", overrides=[(dict(LIVE_DEFAULTS, plots=False), "test")])
+    np.testing.assert_array_equal(ref.pipeline.enhanced_signal(), y_live)
     # the enhanced stream was played on the output card
     assert bay.n_recorded > 0 and np.abs(bay.recorded[:bay.n_recorded]).max() > 0.01
 
