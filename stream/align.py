@@ -45,7 +45,11 @@ def energy_envelope(x: np.ndarray, *, sample_rate_hz: float, hop_s: float = 0.01
     if n == 0:
         return np.zeros(0)
     e = np.log10(np.mean(np.square(x[: n * hop].reshape(n, hop), dtype=np.float64), axis=1) + 1e-12)
-    floor = np.percentile(e, 10) + 0.6
+    # the floor is taken over the frames that hold sound: digital silence (a card started before the room made
+    # a sound, a stream's end) would pull it down, and its step to the first sound would then out-correlate
+    # the sound itself
+    sound = e > np.log10(SILENCE_RMS ** 2 + 1e-12) + 0.5
+    floor = np.percentile(e[sound] if sound.any() else e, 10) + 0.6
     e = np.maximum(e, floor)  # ignore the noise floor (and 6 dB above it): only what rises above it aligns
     e -= e.mean()
     std = e.std()

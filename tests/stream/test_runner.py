@@ -263,3 +263,22 @@ def test_a_late_device_does_not_stall_the_others(make_devices, tmp_path):
     valid = np.asarray(out.pipeline.state.valid)
     t = np.asarray(out.pipeline.state.time_s)
     assert valid[(t > 6.0) & (t < 6.8), 2].sum() == 0 and valid[t > 8.0, 2].mean() > 0.9
+
+
+def test_leading_digital_silence_does_not_mislead_the_first_alignment(tmp_path):
+    """Cards started 0.56 s before the room made a sound (every device's stream starts with digital silence):
+    the first alignment finds the same offsets as without it, and no re-check has to repair them."""
+    from stream.fixture import load_fixture
+    from tests.conftest import REPO_FIXTURES
+    fx = load_fixture(REPO_FIXTURES / "meeting_table")
+    paths = []
+    for d in fx.devices:
+        x, rate = sf.read(d.path, dtype="float32")
+        paths.append(tmp_path / f"{d.name}.wav")
+        sf.write(paths[-1], np.r_[np.zeros(9000, np.float32), x], rate, subtype="FLOAT")
+    cfg = EngineConfig(plots=False, progress=False, align_window_s=4.0, max_offset_s=0.5, align_recheck_s=5.0)
+    out = run_replay(paths, tmp_path / "out", config=cfg)
+    ref = run_replay([REPO_FIXTURES / "meeting_table"], tmp_path / "ref", config=cfg)
+    assert out.report["stream"]["alignment_events"] == []
+    np.testing.assert_allclose(out.report["stream"]["coarse_offsets_s"], ref.report["stream"]["coarse_offsets_s"],
+                               atol=3 / FS)
