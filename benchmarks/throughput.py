@@ -514,7 +514,7 @@ def bench_engine(repeats: int, audio_s: float, profile: bool) -> dict:
                 wall.append(rep["timing"]["wall_s"] / audio)
                 block_ms.append(rep["timing"]["block_ms_median"])
                 # Pipeline.process_block wall time (stages + its book-keeping, not the sinks)
-                in_blocks.append(1e-3 * float(np.sum(outcome.pipeline.state.block_ms)) / audio)
+                in_blocks.append(1e-3 * outcome.pipeline.hop_times.sum_ms / audio)
         n_gated = rep["stream"]["n_gated"]
         n_blocks = rep["stream"]["n_blocks"]
         split = None

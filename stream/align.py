@@ -288,8 +288,9 @@ class Aligner:
                 self._last_data_s[device_id] = time.monotonic()
         if int(flags) & _LAST:
             self._ended[device_id] = True
-        elif self._waiting_for is not None and self._waiting_for != device_id and not self._overdue():
-            return iter(())   # the next block waits for another device, not yet late: nothing new (most pushes)
+        elif self._waiting_for is not None and self._waiting_for != device_id and (
+                self.deadline_s is None or time.monotonic() - self._last_data_s[self._waiting_for] < self.deadline_s):
+            return iter(())   # the next block waits for a device that is not late: nothing new (most pushes)
         return self._emit()
 
     def finish(self) -> Iterator[Block]:

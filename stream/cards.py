@@ -314,6 +314,11 @@ class CardSource:
     def duration_s(self) -> float | None:
         return None   # live: unknown
 
+    @property
+    def input_latency_s(self) -> float:
+        """The largest PortAudio input latency of the open cards, seconds."""
+        return max((c.latency_s for c in self._cards), default=0.0)
+
     def stop(self) -> None:
         """End the stream after what was captured so far (safe from a signal handler or any thread)."""
         self._stop.set()

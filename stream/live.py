@@ -95,8 +95,7 @@ class StatusLine:
         is queued for the output card."""
         fs = pipeline.config.working_rate_hz
         lat = (pipeline.latency_samples + pipeline.config.hop_samples) / fs
-        cards = getattr(self.source, "_cards", [])
-        lat += max((c.latency_s for c in cards), default=0.0)
+        lat += self.source.input_latency_s
         if self.playback is not None:
             lat += self.playback.queued_samples / self.playback.sample_rate_hz + self.playback.latency_s
         return lat

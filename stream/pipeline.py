@@ -7,8 +7,8 @@
                       └─ ChirpDetector ─▶ StreamCalibrator (snapshot ─▶ calibrate() in an executor ─▶ Geometry)
 
 ``FrameChecker`` is the one stage that reads ``Frame.first_sample``: it fills gaps (flagged; the device is
-left out of those blocks) and drops repeats. Each channel's spectrum is computed once per hop and shared by GCC-PHAT and the beamformer. With a
-calibrator, every device's conditioned stream (its own clock) also goes through a chirp detector, and once per
+left out of those blocks) and drops repeats. Each channel's spectrum is computed once per hop and shared by
+GCC-PHAT and the beamformer. With a calibrator, every device's conditioned stream (its own clock) also goes through a chirp detector, and once per
 block, at the frame boundary, a newly solved geometry is swapped in: each device's resampler gets its clock
 rate (``rate_ratio``) and the aligner its clock offset (:meth:`Pipeline.apply_geometry`).
 """
@@ -143,14 +143,13 @@ class PipelineState:
     """
 
     history_cap: int | None = None
-    keep_audio: bool = True
 
     def __post_init__(self) -> None:
         cap = self.history_cap
-        for name in ("time_s", "toa_s", "gated", "tdoa_s", "confidence", "valid", "weights", "block_ms",
-                     "offsets", "track_id", "speech_probability"):
+        for name in ("time_s", "toa_s", "gated", "tdoa_s", "confidence", "valid", "weights", "offsets",
+                     "track_id", "speech_probability"):
             setattr(self, name, History(cap))
-        audio_cap = None if (cap is None and self.keep_audio) else 0
+        audio_cap = None if cap is None else 0
         self.enhanced = History(audio_cap)
         self.aligned_input = History(audio_cap)
         # tracker only: every confirmed track's TOA per frame (coarse offsets included), for the sources plot
@@ -297,14 +296,9 @@ class Pipeline:
         wait: the audio is done). Returns the hops produced, in order."""
         for block in self.aligner.finish():
             self.process_block(block)
-        fs = self.config.working_rate_hz
         while self._delayed:   # the last `lag` frames: steered by the newest estimate (none will come)
             spectra, block, time_s, tdoa, valid = self._delayed.popleft()
-            fine = self._fine_toa_s
-            enhanced = self.das.process_spectra(spectra, fine, valid=valid)
-            toa = ToaEstimate(block.seq, time_s, block.offsets_samples / fs + fine, False, -1, float("nan"))
-            self._record(block, tdoa, toa, enhanced)
-            self._results.append(HopResult(enhanced, toa))
+            self._steer(spectra, block, time_s, tdoa, valid, self._fine_toa_s, False, -1, float("nan"))
         if self.calibrator is not None:
             n0 = self.counters.n_blocks * self.config.hop_samples
             geometry = self.calibrator.finish(
@@ -329,13 +323,12 @@ class Pipeline:
             self._results.append(HopResult(enhanced))
         return self._take_results()
 
-    def _pre_roll(self, block: Block, t0: float) -> None:
+    def _pre_roll(self, t0: float) -> None:
         """The first ``lag`` hops of a lagging estimator: the output is silence (the beamformer's output is
         ``lag`` hops later; :attr:`latency_samples` includes them) and nothing is recorded yet."""
         enhanced = np.zeros(self.config.hop_samples, np.float32)
         self.state.enhanced.append(enhanced)
-        ms = 1e3 * (time.perf_counter() - t0)
-        self.hop_times.add(ms)
+        self.hop_times.add(1e3 * (time.perf_counter() - t0))
         self._results.append(HopResult(enhanced))
 
     def process_block(self, block: Block) -> None:
@@ -390,16 +383,20 @@ class Pipeline:
         if self._lag:   # the estimate is `lag` frames old: steer the spectra of that frame with it
             self._delayed.append((spectra.copy(), block, time_s, tdoa, valid.copy()))
             if len(self._delayed) <= self._lag:
-                self._pre_roll(block, t0)
+                self._pre_roll(t0)
                 return
             spectra, block, time_s, tdoa, valid = self._delayed.popleft()
-        enhanced = self.das.process_spectra(spectra, fine, valid=valid)
-        toa = ToaEstimate(block.seq, time_s, block.offsets_samples / fs + fine, gated, track_id, p_speech)
-        self._record(block, tdoa, toa, enhanced)
+        self._steer(spectra, block, time_s, tdoa, valid, fine, gated, track_id, p_speech)
         self._recentre(fine, block)
-        ms = 1e3 * (time.perf_counter() - t0)
-        self.state.block_ms.append(ms)
-        self.hop_times.add(ms)
+        self.hop_times.add(1e3 * (time.perf_counter() - t0))
+
+    def _steer(self, spectra, block: Block, time_s: float, tdoa: TdoaFrame, valid: np.ndarray, fine: np.ndarray,
+               gated: bool, track_id: int, p_speech: float) -> None:
+        """Delay-and-sum of one frame's spectra steered by ``fine``; record it and queue its hop."""
+        enhanced = self.das.process_spectra(spectra, fine, valid=valid)
+        toa = ToaEstimate(block.seq, time_s, block.offsets_samples / self.config.working_rate_hz + fine, gated,
+                          track_id, p_speech)
+        self._record(block, tdoa, toa, enhanced)
         self._results.append(HopResult(enhanced, toa))
 
     # calibration -----------------------------------------------------------------------------

@@ -51,30 +51,24 @@ class _Collector(logging.Handler):
         self.messages.append(record.getMessage())
 
 
-def resolve_inputs(inputs: Sequence[str | Path]) -> tuple[list[Path], list[str] | None, Fixture | None]:
-    """Files per device, their names, and the fixture when ``inputs`` is one fixture folder (a recorded folder's
-    engine options: :func:`recording_engine`)."""
+def resolve_inputs(inputs: Sequence[str | Path]) -> tuple[list[Path], list[str] | None, Fixture | None,
+                                                         tuple[dict[str, Any], str] | None]:
+    """Files per device, their names, the fixture when ``inputs`` is one fixture folder, and the engine options
+    (with their source) of a recorded folder (``adhoc-array live --record``)."""
     if not inputs:
         raise InputFileError("No input was given; pass a fixture folder or one audio file per device.")
     if len(inputs) == 1 and Path(inputs[0]).is_dir():
         root = Path(inputs[0])
-        if (root / sinks.RecordingSink.MANIFEST).is_file():
-            paths, names, _ = _load_recording(root / sinks.RecordingSink.MANIFEST)
-            return paths, names, None
+        manifest = root / sinks.RecordingSink.MANIFEST
+        if manifest.is_file():
+            paths, names, engine = _load_recording(manifest)
+            return paths, names, None, (engine, f"{manifest} [engine]")
         if not is_fixture_dir(root):
             raise InputFileError(f"{root} is a folder without a fixture.toml or {sinks.RecordingSink.MANIFEST}; "
                                  "pass the audio files themselves.")
         fixture = load_fixture(root)
-        return [d.path for d in fixture.devices], [d.name for d in fixture.devices], fixture
-    return [Path(p) for p in inputs], None, None
-
-
-def recording_engine(inputs: Sequence[str | Path]) -> tuple[dict[str, Any], str] | None:
-    """The ``[engine]`` options of a recorded folder (``adhoc-array live --record``), with their source."""
-    if len(inputs) == 1 and (Path(inputs[0]) / sinks.RecordingSink.MANIFEST).is_file():
-        manifest = Path(inputs[0]) / sinks.RecordingSink.MANIFEST
-        return _load_recording(manifest)[2], f"{manifest} [engine]"
-    return None
+        return [d.path for d in fixture.devices], [d.name for d in fixture.devices], fixture, None
+    return [Path(p) for p in inputs], None, None, None
 
 
 def _load_recording(manifest: Path) -> tuple[list[Path], list[str], dict[str, Any]]:
@@ -98,7 +92,8 @@ def _load_recording(manifest: Path) -> tuple[list[Path], list[str], dict[str, An
 
 def make_calibrator(cfg: EngineConfig, n_devices: int, out: Path, *, device_names: Sequence[str] = (),
                     solver: Callable[[CalibrationSnapshot], Geometry] | None = None,
-                    on_geometry: Callable[[Geometry], None] | None = None, live: bool = False) -> StreamCalibrator | None:
+                    on_geometry: Callable[[Geometry], None] | None = None,
+                    live: bool = False) -> StreamCalibrator | None:
     """The stream's calibrator from the resolved options (None when ``calibration_odometry`` is unset).
 
     Every adopted geometry is written to ``out/geometry.json`` (atomically) and then handed to
@@ -157,8 +152,7 @@ def run_replay(inputs: Sequence[str | Path], out_dir: str | Path, *, config: Eng
         Base options (defaults when None). A fixture's ``[engine]`` table applies on top of it,
         then each ``(values, source)`` of ``overrides`` in order (a config file, then the CLI).
     """
-    paths, names, fixture = resolve_inputs(inputs)
-    recorded = recording_engine(inputs)
+    paths, names, fixture, recorded = resolve_inputs(inputs)
     cfg = _layered(config or EngineConfig(), fixture, [recorded, *overrides] if recorded else overrides)
     source = ReplaySource(paths, block_s=cfg.block_s, speed=cfg.speed, names=names)
     return run_stream(source, out_dir, config=cfg, fixture=fixture, names=names, solver=solver,
@@ -204,7 +198,6 @@ def run_stream(source, out_dir: str | Path, *, config: EngineConfig, fixture: Fi
     collector = _Collector()
     logging.getLogger().addHandler(collector)
     t_wall0, t_cpu0 = time.perf_counter(), time.process_time()
-    paths = [d.path for d in getattr(source, "devices", [])] or []
     report: dict[str, Any] = {"status": "ok", "inputs": [], "live": bool(getattr(source, "live", False))}
     pipeline = None
     calibrator = None
@@ -287,14 +280,14 @@ def run_stream(source, out_dir: str | Path, *, config: EngineConfig, fixture: Fi
             calibrator.close()
         if extra_report is not None:
             extra_report(report)
-        _finalise(report, out, cfg, pipeline, fixture, names, paths, collector, t_wall0, t_cpu0, wav, csv_sink)
+        _finalise(report, out, cfg, pipeline, fixture, names, collector, t_wall0, t_cpu0, wav, csv_sink)
         raise
     restore()
     if calibrator is not None:
         calibrator.close()
     if extra_report is not None:
         extra_report(report)
-    _finalise(report, out, cfg, pipeline, fixture, names, paths, collector, t_wall0, t_cpu0, wav, csv_sink)
+    _finalise(report, out, cfg, pipeline, fixture, names, collector, t_wall0, t_cpu0, wav, csv_sink)
     return RunOutcome(report, pipeline, out)
 
 
@@ -347,7 +340,7 @@ def observed_drift_ppm(time_s: np.ndarray, toa_s: np.ndarray, gated: np.ndarray,
     return out
 
 
-def _finalise(report, out, cfg, pipeline, fixture, names, paths, collector, t_wall0, t_cpu0, wav, csv_sink) -> None:
+def _finalise(report, out, cfg, pipeline, fixture, names, collector, t_wall0, t_cpu0, wav, csv_sink) -> None:
     for s in (wav, csv_sink):
         if s is not None:
             s.close()

@@ -63,12 +63,19 @@ def test_frame_checker_fills_gaps_drops_repeats_and_mixes_channels():
     assert (c.counters.n_gaps, c.counters.n_gap_samples, c.counters.n_overlap_samples) == (1, 5, 2)
 
 
-class _GapSource(ReplaySource):
-    """Replays files but loses 0.5 s of device 1 after 3 s (as a full ring would): its frames jump."""
+class _Withholding(ReplaySource):
+    """Replays files but never delivers the frames of one device that start in ``[start_s, stop_s)`` of its
+    clock (samples lost, as by a full ring, or held back, as by a stalled card or a lost network link): the
+    device resumes with the index of its next sample, so the gap is in its clock."""
+
+    def __init__(self, paths, *, device: int, start_s: float, stop_s: float, **kwargs) -> None:
+        super().__init__(paths, **kwargs)
+        self.withheld = (device, start_s * FS, stop_s * FS)
 
     def __iter__(self):
+        device, start, stop = self.withheld
         for frame in super().__iter__():
-            if frame.device_id == 1 and 3 * FS <= frame.first_sample < 3.5 * FS:
+            if frame.device_id == device and start <= frame.first_sample < stop:
                 continue
             yield frame
 
@@ -77,7 +84,8 @@ def test_lost_samples_are_a_flagged_gap_left_out_of_the_beam(make_devices, tmp_p
     paths, _, _ = make_devices([0.0, 0.0004, -0.0003], duration_s=8.0)
     cfg = EngineConfig(plots=False, progress=False, align_window_s=2.0, max_offset_s=0.5)
     ref = run_replay(paths, tmp_path / "ref", config=cfg)
-    out = run_stream(_GapSource(paths, block_s=0.05), tmp_path / "gap", config=cfg,
+    src = _Withholding(paths, device=1, start_s=3.0, stop_s=3.5, block_s=0.05)
+    out = run_stream(src, tmp_path / "gap", config=cfg,
                      handle_signals=False)
     dev = out.report["devices"][1]
     assert dev["n_gaps"] == 1 and dev["n_gap_samples"] == FS // 2
@@ -236,22 +244,12 @@ def test_output_wavs_may_outgrow_4_gib_and_stay_plain_wav_when_small(tmp_path):
     assert rate == FS and len(x) == 1000 and x.min() == 1.0
 
 
-class _StallingSource(ReplaySource):
-    """Paced at 4x real time; device 2 delivers nothing from 4 s to 7 s of the stream (0.75 s of wall time: its
-    frames are held back, as a stalled card's or a lost network link's), then resumes with the index of its next
-    sample (the gap is in its clock)."""
-
-    def __iter__(self):
-        for frame in super().__iter__():
-            if frame.device_id == 2 and 4 * FS <= frame.first_sample < 7 * FS:
-                continue
-            yield frame
-
-
 def test_a_late_device_does_not_stall_the_others(make_devices, tmp_path):
+    """Paced at 4x real time, device 2 delivers nothing from 4 s to 7 s of the stream (0.75 s of wall time)."""
     paths, _, _ = make_devices([0.0, 0.0004, -0.0003], duration_s=10.0)
     cfg = EngineConfig(plots=False, progress=False, align_window_s=2.0, max_offset_s=0.5, device_deadline_s=0.25)
-    out = run_stream(_StallingSource(paths, block_s=0.05, speed=4.0), tmp_path / "o", config=cfg,
+    src = _Withholding(paths, device=2, start_s=4.0, stop_s=7.0, block_s=0.05, speed=4.0)
+    out = run_stream(src, tmp_path / "o", config=cfg,
                      handle_signals=False)
     st = out.report["stream"]
     hop = out.pipeline.config.hop_samples
