@@ -15,6 +15,7 @@ import os
 import shutil
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from dataclasses import dataclass
@@ -59,13 +60,19 @@ def jack_dummy_server(*, sample_rate_hz: int = 16000, period_samples: int = 128,
     name = name or f"adhoc{os.getpid()}_{int(time.monotonic() * 1e3) % 100000}"
     env = dict(os.environ, JACK_NO_AUDIO_RESERVATION="1", JACK_DEFAULT_SERVER=name)
     t0 = time.perf_counter()
+    # jackd's messages go to a file, never a pipe: under load it prints a line per xrun, and a full pipe nobody
+    # reads blocks the server (every client then hangs in its next server call)
+    log = tempfile.TemporaryFile()
     proc = subprocess.Popen(["jackd", "-R", "-P", "70", "-n", name, "-d", "dummy", "-r", str(sample_rate_hz),
                              "-p", str(period_samples), "-C", str(n_channels), "-P", str(n_channels)],
-                            env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+                            env=env, stdout=subprocess.DEVNULL, stderr=log)
     while subprocess.run(["jack_lsp"], env=env, capture_output=True).returncode != 0:
         if proc.poll() is not None or time.perf_counter() - t0 > timeout_s:
             proc.kill()
-            err = proc.stderr.read().decode(errors="replace")[-400:]
+            proc.wait()
+            log.seek(0)
+            err = log.read().decode(errors="replace")[-400:]
+            log.close()
             raise AudioDeviceError(f"The JACK dummy server did not start ({err.strip() or 'no message'}).")
         time.sleep(0.02)
     old = os.environ.get("JACK_DEFAULT_SERVER")
@@ -82,6 +89,7 @@ def jack_dummy_server(*, sample_rate_hz: int = 16000, period_samples: int = 128,
             proc.wait(5)
         except subprocess.TimeoutExpired:
             proc.kill()
+        log.close()
         if old is None:
             os.environ.pop("JACK_DEFAULT_SERVER", None)
         else:
@@ -118,7 +126,9 @@ class PatchBay:
         self._pos = 0
         self._go = False
         self._lock = threading.Lock()
+        self.n_xruns = 0            # the server's xruns (a cycle ran late: on a loaded machine audio is lost)
         self.client.set_process_callback(self._process)
+        self.client.set_xrun_callback(self._xrun)
         self.client.activate()
 
     def _process(self, n: int) -> None:
@@ -144,6 +154,9 @@ class PatchBay:
                 self.recorded[r:r + m, k] = port.get_array()[:m]
             self.n_recorded = r + m
         self.frame += n
+
+    def _xrun(self, delay_usecs: float) -> None:
+        self.n_xruns += 1
 
     def play(self, signal: np.ndarray) -> None:
         """Start playing ``signal`` (n_samples, n_channels) on out_1.. from the next cycle."""

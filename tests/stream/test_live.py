@@ -7,11 +7,13 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
 import threading
 import time
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -59,6 +61,23 @@ def _feed(bay, signal_: np.ndarray, n_inputs: int, *, client: str = "PortAudio",
     return t
 
 
+def _clean_take(bay, take, attempts: int = 3):
+    """Run ``take()`` until the JACK server has no xrun during it; returns (its result, whether it was clean).
+
+    An xrun is a cycle the server ran late (a loaded machine without real-time scheduling): the server itself
+    loses audio then, so a take with one cannot be compared sample for sample; the engine counts it.
+    """
+    for _ in range(attempts):
+        x0 = bay.n_xruns
+        result = take()
+        time.sleep(0.1)                  # the xrun notice comes on the client's own thread
+        if bay.n_xruns == x0:
+            return result, True
+    warnings.warn(f"the JACK server had xruns in each of {attempts} takes (the machine is too loaded to run its "
+                  f"cycles on time); the sample-exact comparisons were skipped")
+    return result, False
+
+
 def _lead(x: np.ndarray) -> int:
     nz = np.flatnonzero(np.any(x != 0, axis=1) if x.ndim == 2 else x != 0)
     return int(nz[0]) if len(nz) else len(x)
@@ -76,23 +95,30 @@ def test_capture_of_a_multichannel_signal_is_bit_exact(jack, bay):
     from stream.cards import CardSource
     rng = np.random.default_rng(3)
     sig = (0.2 * rng.standard_normal((RATE, 6))).astype(np.float32)
-    frames: dict[int, list] = {0: [], 1: []}
-    firsts: dict[int, list] = {0: [], 1: []}
-    with CardSource(["system:1,2,3", "system:5,6"], max_duration_s=2.0) as src:
-        assert len(src._cards) == 1 and src._cards[0].n_channels == 6
-        _feed(bay, sig, 6)
-        for f in src:
-            frames[f.device_id].append(f.samples)
-            firsts[f.device_id].append(f.first_sample)
+
+    def take():
+        frames: dict[int, list] = {0: [], 1: []}
+        firsts: dict[int, list] = {0: [], 1: []}
+        with CardSource(["system:1,2,3", "system:5,6"], max_duration_s=2.0) as src:
+            assert len(src._cards) == 1 and src._cards[0].n_channels == 6
+            _feed(bay, sig, 6)
+            for f in src:
+                frames[f.device_id].append(f.samples)
+                firsts[f.device_id].append(f.first_sample)
+        return src, frames, firsts
+
+    (src, frames, firsts), clean = _clean_take(bay, take)
     a, b = np.concatenate(frames[0]), np.concatenate(frames[1])
     assert a.shape[1] == 3 and b.shape[1] == 2 and len(a) == len(b) >= 2 * RATE
     starts = np.cumsum([0] + [len(x) for x in frames[0][:-1]])
     np.testing.assert_array_equal(firsts[0], starts)          # contiguous stamps, no gap
-    lead = _lead(a)
-    assert lead == _lead(b) and lead + RATE <= len(a)
-    assert np.array_equal(a[lead:lead + RATE], sig[:, 0:3])
-    assert np.array_equal(b[lead:lead + RATE], sig[:, 4:6])
-    assert all(d.n_gaps == 0 and d.n_overflows == 0 for d in src.active)
+    assert all(d.n_gaps == 0 for d in src.active)
+    if clean:
+        lead = _lead(a)
+        assert lead == _lead(b) and lead + RATE <= len(a)
+        assert np.array_equal(a[lead:lead + RATE], sig[:, 0:3])
+        assert np.array_equal(b[lead:lead + RATE], sig[:, 4:6])
+        assert all(d.n_overflows == 0 for d in src.active)
 
 
 def test_live_equals_replay_and_the_recording_replays_exactly(jack, bay, tmp_path):
@@ -102,15 +128,34 @@ def test_live_equals_replay_and_the_recording_replays_exactly(jack, bay, tmp_pat
     from stream.run import run_replay
     fx = load_fixture(REPO_FIXTURES / "meeting_table")
     sig = np.stack([sf.read(d.path, dtype="float32")[0] for d in fx.devices], axis=1)
-    _feed(bay, sig, 6, output=True)
-    live = run_live([f"system:{k + 1}" for k in range(6)], tmp_path / "live", output="system",
-                    record=tmp_path / "take", max_duration_s=8.5, status=False,
-                    names=[d.name for d in fx.devices])
+
+    def take():
+        shutil.rmtree(tmp_path / "live", ignore_errors=True)
+        shutil.rmtree(tmp_path / "take", ignore_errors=True)
+        _feed(bay, sig, 6, output=True)
+        return run_live([f"system:{k + 1}" for k in range(6)], tmp_path / "live", output="system",
+                        record=tmp_path / "take", max_duration_s=8.5, status=False,
+                        names=[d.name for d in fx.devices])
+
+    live, clean = _clean_take(bay, take)
     rep = live.report
     assert rep["status"] == "ok" and rep["live"] is True, rep.get("error")
-    # nothing lost on the way in (output underflows, a hiccup of a loaded machine, are counted, not tested here:
-    # benchmarks/live_soak.py measures them)
-    assert all(c["n_overflows"] == 0 and c["n_gaps"] == 0 for c in rep["cards"]["inputs"]), rep["cards"]
+    counts = [(c["name"], c["n_overflows"], c["n_gaps"]) for c in rep["cards"]["inputs"]]
+    # the engine keeps up (no ring gaps) and, without a server xrun, nothing is lost on the way in (output
+    # underflows, a hiccup of a loaded machine, are counted, not tested here: benchmarks/live_soak.py measures them)
+    assert all(g == 0 for _, _, g in counts), counts
+    # replaying the recorded folder gives the live output exactly (recording.toml carries the live options), even
+    # after an xrun: the recording holds what the engine received
+    again = run_replay([tmp_path / "take"], tmp_path / "again", overrides=[({"plots": False}, "test")])
+    y_live = sf.read(tmp_path / "live" / "enhanced.wav", dtype="float32")[0]
+    y_again = sf.read(tmp_path / "again" / "enhanced.wav", dtype="float32")[0]
+    assert again.report["status"] == "ok"
+    np.testing.assert_array_equal(y_live, y_again)
+    # the enhanced stream was played on the output card
+    assert bay.n_recorded > 0 and np.abs(bay.recorded[:bay.n_recorded]).max() > 0.01
+    if not clean:
+        return
+    assert all(o == 0 for _, o, _ in counts), counts
     # the recording: each device's file is the fixture's, after the same lead of digital silence
     rec = [sf.read(tmp_path / "take" / f"dev{k:02d}_{d.name}.wav", dtype="float32")[0] for k, d in
            enumerate(fx.devices)]
@@ -119,12 +164,6 @@ def test_live_equals_replay_and_the_recording_replays_exactly(jack, bay, tmp_pat
         n = min(len(d), len(x) - lead)
         assert _lead(x) == lead and n > 6 * RATE, (lead, _lead(x), n, rep["cards"])
         assert np.array_equal(x[lead:lead + n], d[:n]), rep["cards"]
-    # replaying the recorded folder gives the live output exactly (recording.toml carries the live options)
-    again = run_replay([tmp_path / "take"], tmp_path / "again", overrides=[({"plots": False}, "test")])
-    y_live = sf.read(tmp_path / "live" / "enhanced.wav", dtype="float32")[0]
-    y_again = sf.read(tmp_path / "again" / "enhanced.wav", dtype="float32")[0]
-    assert again.report["status"] == "ok"
-    np.testing.assert_array_equal(y_live, y_again)
     # replaying the fixture's own files, with the lead of silence the card delivered before the playback started
     # and the same length, gives the live output exactly (the engine's result depends on where its hops fall
     # in the signal, so the lead must be the same: with 100 samples instead of 1408, SI-SDR moved by -4.7 dB)
@@ -135,8 +174,6 @@ def test_live_equals_replay_and_the_recording_replays_exactly(jack, bay, tmp_pat
                  if len(x) >= lead + len(d) else np.r_[np.zeros(lead, np.float32), d][:len(x)], RATE, subtype="FLOAT")
     ref = run_replay(files, tmp_path / "replay", overrides=[(dict(LIVE_DEFAULTS, plots=False), "test")])
     np.testing.assert_array_equal(ref.pipeline.enhanced_signal(), y_live)
-    # the enhanced stream was played on the output card
-    assert bay.n_recorded > 0 and np.abs(bay.recorded[:bay.n_recorded]).max() > 0.01
 
 
 def _valid_outputs(out: Path, rec: Path | None = None) -> dict:
