@@ -148,6 +148,8 @@ def _recheck_offsets(ref: np.ndarray, segments: dict[int, np.ndarray], *, sample
 
 
 _LAST = int(FrameFlag.LAST)
+_NEW_CLOCK = int(FrameFlag.NEW_CLOCK)
+_GAP = int(FrameFlag.GAP)
 RECHECK_MIN_QUALITY = 0.5        # envelope correlation a re-check needs to move an aligned device
 RECHECK_MAX_SILENT_SHARE = 0.1   # a re-check skips windows with more digital silence than this (stream ends)
 
@@ -262,6 +264,8 @@ class Aligner:
         self._late = [False] * n_devices
         self.n_late_blocks = np.zeros(n_devices, dtype=np.int64)
         self._corrected = np.zeros(n_devices, bool)
+        self._new_clock_pending: set[int] = set()
+        self._ref_start: int | None = None     # reference sample of its first frame that is not a gap
         self._bufs = [_SampleBuffer() for _ in range(n_devices)]
         self._buf_start = [0] * n_devices     # device sample index of _bufs[d][0]
         self._received = [0] * n_devices
@@ -281,11 +285,18 @@ class Aligner:
         The blocks are cut one at a time as the caller takes them, so an offset change requested while the
         caller processes block ``k`` (:meth:`shift`) takes effect at block ``k + 1`` however the input was
         split into frames: streaming equals batch. Iterate to the end before the next call."""
+        if device_id == 0 and self._ref_start is None and len(samples) and not int(flags) & _GAP:
+            self._ref_start = self._received[0]     # the reference's first audio (not a network lead)
         if len(samples):
             self._bufs[device_id].append(samples)
             self._received[device_id] += len(samples)
             if self.deadline_s is not None:
                 self._last_data_s[device_id] = time.monotonic()
+        if int(flags) & _NEW_CLOCK:
+            if self.ready:
+                self._new_clock(device_id)
+            else:       # the first alignment's window holds both clocks: the device waits for a re-check
+                self._new_clock_pending.add(device_id)
         if int(flags) & _LAST:
             self._ended[device_id] = True
         elif self._waiting_for is not None and self._waiting_for != device_id and (
@@ -330,10 +341,23 @@ class Aligner:
                 log.info("t=%.2f s: device %d has caught up and is back in the stream.", t_s, d)
             self._late[d] = late
 
+    def _new_clock(self, device_id: int) -> None:
+        """A device restarted (a new clock): its offset to the reference is unknown again, so it leaves the beam
+        until a re-check finds it (the reference restarted: every other device)."""
+        for d in ([device_id] if device_id else range(1, self.n_devices)):
+            if self.aligned[d]:
+                self.aligned[d] = False
+                msg = (f"Device {d} restarted with a new clock" if device_id else
+                       f"The reference restarted with a new clock, so device {d}")
+                msg += " is left out of the beamformer until the next re-check of the offsets aligns it again."
+                self.messages.append(msg)
+                log.warning(msg)
+
     def _initial_alignment(self) -> None:
-        ref = self._bufs[0].data[: self.window_samples].copy()
+        s0 = self._ref_start or 0     # a reference that joined the network late: its window starts at its audio
+        ref = self._bufs[0].data[s0:s0 + self.window_samples].copy()
         for d in range(1, self.n_devices):
-            x = self._bufs[d].data[: self.window_samples + int(self.max_offset_s * self.sample_rate_hz)]
+            x = self._bufs[d].data[s0:s0 + self.window_samples + int(self.max_offset_s * self.sample_rate_hz)]
             off, q = coarse_offset(ref, x, sample_rate_hz=self.sample_rate_hz, max_offset_s=self.max_offset_s)
             self.offsets_samples[d], self.quality[d] = off, q
             if q < self.min_quality:
@@ -343,6 +367,8 @@ class Aligner:
                 self.messages.append(msg)
                 log.warning(msg)
         self.ready = True
+        for d in sorted(self._new_clock_pending):
+            self._new_clock(d)
 
     def _submit_recheck(self) -> None:
         """Snapshot the last ``align_window_s`` of every device and re-check the offsets in a worker thread;
@@ -417,7 +443,8 @@ class Aligner:
 
     def _emit(self) -> Iterator[Block]:
         if not self.ready:
-            need = [self.window_samples + (int(self.max_offset_s * self.sample_rate_hz) if d else 0)
+            s0 = self._ref_start if self._ref_start is not None or self._ended[0] else self._received[0] + 1
+            need = [(s0 or 0) + self.window_samples + (int(self.max_offset_s * self.sample_rate_hz) if d else 0)
                     for d in range(self.n_devices)]
             have = all(self._ended[d] or self._received[d] >= need[d] for d in range(self.n_devices))
             if not have and not (self._overdue() and self._received[0] >= need[0]):

@@ -75,6 +75,85 @@ def _add_engine_options(p: argparse.ArgumentParser) -> None:
                         "streams never wait)")
 
 
+def _add_net_options(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("network (Zenoh)")
+    g.add_argument("--array", default="default", help="the array's name: its keys are adhoc/ARRAY/... (default "
+                                                       "'default')")
+    g.add_argument("--mode", choices=["peer", "client"], default="peer",
+                   help="peer (default: peers on a LAN find each other by multicast scouting) or client (through "
+                        "a router: --connect)")
+    g.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
+                   help="endpoint to connect to, e.g. tcp/192.168.1.10:7447 (repeatable)")
+    g.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
+                   help="endpoint to listen on, e.g. tcp/0.0.0.0:7448 (repeatable)")
+    g.add_argument("--zenoh-config", metavar="FILE",
+                   help="a Zenoh JSON5 configuration, passed to Zenoh unchanged (TLS, user/password, access "
+                        "control); --mode/--connect/--listen apply on top")
+    g.add_argument("--no-scouting", dest="scouting", action="store_false",
+                   help="no multicast scouting (give --connect/--listen)")
+
+
+def _net(args: argparse.Namespace, mode: str | None = None):
+    from .net import NetOptions
+    return NetOptions(mode=mode or args.mode, connect=args.__dict__.get("connect") or (), listen=args.listen,
+                      config_file=args.zenoh_config, scouting=args.scouting)
+
+
+def _run_net(args: argparse.Namespace) -> int:
+    from . import net
+    net.quiet_zenoh()
+    if args.command == "router":
+        def ready(locators) -> None:
+            print(f"adhoc-array router: listening on {', '.join(locators) or ', '.join(args.listen)}", flush=True)
+        options = _net(args, "router")
+        if not args.listen and not args.zenoh_config:
+            options.listen = ["tcp/0.0.0.0:7447"]
+        net.run_router(options, ready=ready)
+        return 0
+    if args.command == "listen":
+        key = args.key if args.key.count("/") >= 2 else (
+            net.Keys(args.array).audio(args.key[4:]) if args.key.startswith("dev/") else net.Keys(args.array).out(args.key))
+        done = net.listen(key, args.out, _net(args), max_duration_s=args.duration, wait_s=args.wait_s)
+        print(f"adhoc-array listen {key}: {done['n_frames']} frames, {done['n_samples']} samples, {done['n_gaps']} "
+              f"gaps, {done['n_lines']} lines, {done['n_malformed']} malformed  ->  {args.out}")
+        return 0
+    if args.command == "device":
+        source = _device_source(args)
+        counters = net.run_device(args.name, source, _net(args), array=args.array, sample_format=args.sample_format,
+                                  gain=args.gain, describe=args.input, wait_aggregator_s=args.wait_aggregator)
+        print(f"adhoc-array device {args.name}: sent {counters.n_frames} frames ({counters.n_samples} samples, "
+              f"{counters.n_bytes / 1e6:.2f} MB), {counters.n_put_errors} send errors")
+        return 0
+    layers = [(load_toml(args.config), args.config)] if args.config else []
+    layers.append((_overrides(args), "command line"))
+    expect = [n.strip() for n in args.expect.split(",") if n.strip()] if args.expect else []
+    outcome = net.run_aggregate(args.out, _net(args), array=args.array, expect=expect, discover_s=args.discover_s,
+                                jitter_s=args.jitter_s, until_done=args.until_done, max_duration_s=args.duration,
+                                overrides=layers)
+    print(summary(outcome.report, Path(args.out)))
+    return 0 if outcome.report["status"] == "ok" else 1
+
+
+def _device_source(args: argparse.Namespace):
+    path = Path(args.input)
+    if not path.exists() and ("/" in args.input or path.suffix.lower() in (".wav", ".flac", ".ogg", ".mp3", ".aiff")):
+        raise ConfigError(f"--input {path} does not exist.")
+    if path.is_file():
+        import soundfile as sf
+        from .replay import ReplaySource
+        try:
+            rate = sf.info(str(path)).samplerate
+        except Exception as err:  # noqa: BLE001 - soundfile's errors: one sentence
+            raise ConfigError(f"--input {path} is not a readable audio file ({err}).") from None
+        if not args.speed > 0:
+            raise ConfigError(f"--speed {args.speed} must be > 0")
+        return ReplaySource([path], block_s=args.frame_samples / rate, speed=args.speed, names=[args.name],
+                            start_s=args.start_s)
+    from .cards import CardSource
+    return CardSource([args.input], sample_rate_hz=args.card_rate_hz, block_samples=args.frame_samples,
+                      names=[args.name])
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="adhoc-array", description="Streaming engine for ad-hoc microphone arrays.")
     parser.add_argument("-v", "--verbose", action="store_true", help="log more")
@@ -110,6 +189,58 @@ def build_parser() -> argparse.ArgumentParser:
     lp.add_argument("--no-status", dest="status", action="store_false", help="no live status line")
     lp.add_argument("--config", help="TOML file with engine options")
     _add_engine_options(lp)
+    dp = sub.add_parser("device", help="stream one device (a sound card, or a file at real time) to the array",
+                        description="A device agent: streams one microphone (or one recording, paced at real "
+                                    "time) to the array's aggregator over Zenoh, until its input ends or Ctrl-C.",
+                        epilog="The frames go to adhoc/ARRAY/dev/NAME/audio; the device's facts answer queries on "
+                               "adhoc/ARRAY/dev/NAME/info; its liveliness token is adhoc/ARRAY/alive/NAME.")
+    dp.add_argument("--name", required=True, help="the device's name in the array (unique)")
+    dp.add_argument("--input", required=True, metavar="CARD[:CH,..]|FILE",
+                    help="a sound card (as live --input) or an audio file replayed as a live device")
+    dp.add_argument("--speed", type=float, default=1.0, help="a file's pace: 1.0 real time (default), 2.0 twice")
+    dp.add_argument("--start-s", type=float, default=0.0, help="a file: start this far into it (default 0)")
+    dp.add_argument("--frame-samples", type=int, default=1024, help="samples per frame (default 1024)")
+    dp.add_argument("--format", dest="sample_format", choices=["int16", "float32"], default="int16",
+                    help="sample format on the wire (default int16)")
+    dp.add_argument("--gain", type=float, default=1.0, help="multiply the samples (default 1)")
+    dp.add_argument("--wait-aggregator", type=float, default=0.0, metavar="S",
+                    help="start only once an aggregator is there (waiting up to S seconds): a file then loses "
+                         "nothing (default 0: start at once)")
+    dp.add_argument("--rate", type=float, dest="card_rate_hz", metavar="HZ", help="open the card at this rate")
+    _add_net_options(dp)
+    ap = sub.add_parser("aggregate", help="run the engine on every device of the array, over Zenoh",
+                        description="Discover the array's devices (liveliness), run the engine on their frames and "
+                                    "write what replay writes into --out; publish the enhanced audio, the TOA "
+                                    "estimates and the geometry on adhoc/ARRAY/out/{enhanced,toa,geometry}.")
+    ap.add_argument("--out", required=True, help="output folder")
+    ap.add_argument("--expect", help="device names of the array, reference first (comma-separated); the stream "
+                                     "starts once all are present (or after --discover-s); absent ones are "
+                                     "concealed until they join")
+    ap.add_argument("--discover-s", type=float, default=5.0, help="longest wait for devices (default 5 s)")
+    ap.add_argument("--jitter-s", type=float, default=0.1,
+                    help="how long a missing frame is waited for before it is concealed (default 0.1 s)")
+    ap.add_argument("--until-done", action="store_true",
+                    help="end when every device has ended its stream (default: only Ctrl-C ends)")
+    ap.add_argument("--duration", type=float, metavar="S", help="stop after this much audio of the reference")
+    ap.add_argument("--config", help="TOML file with engine options")
+    _add_net_options(ap)
+    _add_engine_options(ap)
+    rt = sub.add_parser("router", help="a Zenoh router, for networks without multicast or many devices",
+                        description="Runs a Zenoh router (zenoh-python's router mode) until Ctrl-C; devices and "
+                                    "the aggregator reach it with --mode client --connect ENDPOINT.")
+    rt.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
+                    help="endpoint to listen on (default tcp/0.0.0.0:7447); repeatable")
+    rt.add_argument("--zenoh-config", metavar="FILE", help="a Zenoh JSON5 configuration (TLS, access control)")
+    rt.add_argument("--no-scouting", dest="scouting", action="store_false", help="no multicast scouting")
+    ls = sub.add_parser("listen", help="record what the array publishes (enhanced audio, TOA, a device's frames)",
+                        description="Subscribe to KEY and record it: audio frames into a WAV (gaps as zeros), "
+                                    "anything else as one line each.")
+    ls.add_argument("key", help="enhanced, toa or geometry (this array's outputs), dev/NAME (a device's audio), "
+                                "or a full key expression")
+    ls.add_argument("--out", required=True, help="file to write (.wav for audio, text otherwise)")
+    ls.add_argument("--duration", type=float, metavar="S", help="stop after this much audio")
+    ls.add_argument("--wait-s", type=float, help="stop after this long with nothing received")
+    _add_net_options(ls)
     sub.add_parser("devices", help="list the sound cards (channels, rates)",
                    description="List every sound card PortAudio sees, with its channels and default rate; "
                                "use a part of the name (or the index) with live --input/--output.")
@@ -155,7 +286,8 @@ def summary(report: dict[str, Any], out: Path) -> str:
     lines = []
     st = report.get("stream", {})
     tm = report.get("timing", {})
-    lines.append(f"adhoc-array {'live' if report.get('live') else 'replay'}: {report.get('status')}  ->  {out}"
+    kind = "aggregate" if "network" in report else "live" if report.get("live") else "replay"
+    lines.append(f"adhoc-array {kind}: {report.get('status')}  ->  {out}"
                  + (f"  (stopped by {report['stopped_by']})" if report.get("stopped_by") else ""))
     if st:
         lines.append(f"  {st['n_devices']} devices at {st['working_rate_hz']:g} Hz, frame {st['frame_samples']} / hop "
@@ -207,6 +339,15 @@ def summary(report: dict[str, Any], out: Path) -> str:
                          "stay live (the start-up alignment releases its audio at once)")
         if "recorded_to" in cards:
             lines.append(f"  raw inputs recorded to {cards['recorded_to']} (adhoc-array replay {cards['recorded_to']})")
+    nw = report.get("network")
+    if nw:
+        for name, d in nw["devices"].items():
+            lat = d.get("latency_ms", {})
+            lines.append(f"  {name}: {d['n_frames']} frames, {d['n_lost_frames']} lost, {d['n_reordered']} reordered, "
+                         f"{d['n_concealed_samples']} samples concealed, {d['n_restarts']} restarts; capture to "
+                         f"engine p50 {_fmt(lat.get('p50'), '.1f')} / p99 {_fmt(lat.get('p99'), '.1f')} ms")
+        for key, n in nw.get("malformed", {}).items():
+            lines.append(f"  ! {n} malformed frames from {key} were rejected")
     problems = [p for d in report.get("devices", []) for p in d.get("problems", [])]
     for p in problems[:8]:
         lines.append(f"  ! {p}")
@@ -309,6 +450,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0
     if args.command == "live":
         return _run_live(args)
+    if args.command in ("device", "aggregate", "router", "listen"):
+        try:
+            return _run_net(args)
+        except AdhocArrayError as err:
+            print(f"adhoc-array: {err}", file=sys.stderr)
+            return 2
     if args.command == "calibrate":
         try:
             return _run_calibrate(args)

@@ -22,6 +22,7 @@ class FrameFlag(enum.IntFlag):
     LAST = enum.auto()           # the device's stream ends with this block
     TRUNCATED = enum.auto()      # the device's file ended early (read error)
     GAP = enum.auto()            # samples before this block were lost (filled with zeros, left out of the beam)
+    NEW_CLOCK = enum.auto()      # the device restarted: its clock, so its offset to the others, is a new one
 
 
 @dataclass(frozen=True)

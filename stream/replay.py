@@ -87,6 +87,9 @@ class ReplaySource:
         ``None`` replays as fast as possible; ``1.0`` paces blocks at real time, ``2.0`` at twice that.
     names : sequence of str, optional
         Device names; default: file stems.
+    start_s : float
+        Start this far into every file (a device that joins a running array mid-recording); the device's clock
+        still starts at sample 0.
 
     Usage: ``with ReplaySource(paths) as src: for frame in src: ...``. Devices whose files cannot be
     opened are left out with a one-sentence message in ``src.devices[k].problems``; ``src.active``
@@ -94,7 +97,7 @@ class ReplaySource:
     """
 
     def __init__(self, paths: Sequence[str | Path], *, block_s: float = 0.02, speed: float | None = None,
-                 names: Sequence[str] | None = None) -> None:
+                 names: Sequence[str] | None = None, start_s: float = 0.0) -> None:
         if len(paths) == 0:
             raise InputFileError("No input files were given; pass one audio file per device.")
         if not block_s > 0:
@@ -103,7 +106,10 @@ class ReplaySource:
             raise ValueError(f"{speed=} must be > 0 (or None for as fast as possible)")
         if names is not None and len(names) != len(paths):
             raise ValueError(f"{len(names)=} must equal {len(paths)=}")
+        if not start_s >= 0:
+            raise ValueError(f"{start_s=} must be >= 0 seconds")
         self.block_s = float(block_s)
+        self.start_s = float(start_s)
         self.speed = speed
         self._paths = [Path(p) for p in paths]
         self._names = list(names) if names is not None else None
@@ -134,6 +140,18 @@ class ReplaySource:
                 seen[name] = 0
             handle, info = open_device_file(path, name=name)
             self.devices.append(info)
+            if handle is not None and self.start_s:
+                skip = int(round(self.start_s * info.sample_rate_hz))
+                if skip >= info.n_file_samples:
+                    info.usable = False
+                    info.problem(f"Device '{name}': {path} lasts {info.duration_s:.2f} s, less than the start "
+                                 f"{self.start_s:g} s; it is left out.")
+                    handle.close()
+                    handle = None
+                else:
+                    handle.seek(skip)
+                    info.n_file_samples -= skip
+                    info.duration_s = info.n_file_samples / info.sample_rate_hz
             if handle is not None:
                 self._handles.append(handle)
                 self.active.append(info)

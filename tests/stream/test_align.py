@@ -77,3 +77,36 @@ def test_device_that_never_overlaps_is_left_out():
     assert not al.aligned[1]
     assert any("left out" in m for m in al.messages)
     assert not any(b.valid[1] for b in blocks)
+
+
+def test_a_reference_that_joins_late_is_aligned_on_its_audio_not_its_lead():
+    """Over the network the reference may be heard seconds after the others: its lead is flagged zeros (GAP).
+    The first alignment takes its window from the reference's first audio, so the offset is still found."""
+    src = bursty_source(12 * FS, sample_rate_hz=FS, seed=6)
+    lead = 4 * FS
+    al = Aligner(2, sample_rate_hz=FS, hop_samples=64, align_window_s=3.0, max_offset_s=1.0, recheck_s=None,
+                 deadline_s=None)
+    blocks = list(al.push(0, np.zeros(lead, np.float32), FrameFlag.GAP))
+    blocks += al.push(1, delayed(src, -300.0, 10 * FS), FrameFlag.NONE)   # device 1 starts 300 samples later
+    assert not al.ready and not blocks                  # waiting for the reference's audio
+    blocks += al.push(0, np.r_[np.zeros(0, np.float32), src[lead:10 * FS]], FrameFlag.NONE)
+    assert al.ready and al.aligned.all() and al.quality[1] > 0.5
+    assert al.offsets_samples[1] == -300
+
+
+def test_a_device_with_a_new_clock_leaves_the_beam_until_a_recheck_finds_it():
+    """NEW_CLOCK (the device restarted): its old offset means nothing, so it is left out of the beamformer,
+    and the next re-check that hears it well aligns it again at its new offset."""
+    src = bursty_source(30 * FS, sample_rate_hz=FS, seed=7)
+    src = src + 1e-3 * np.random.default_rng(7).standard_normal(len(src)).astype(np.float32)   # a room, not zeros
+    al = Aligner(2, sample_rate_hz=FS, hop_samples=64, align_window_s=3.0, max_offset_s=1.0, recheck_s=2.0,
+                 deadline_s=None)
+    list(al.push(0, src[:30 * FS], FrameFlag.NONE))
+    list(al.push(1, src[:10 * FS], FrameFlag.NONE))              # aligned at offset 0 for 10 s
+    assert al.ready and al.offsets_samples[1] == 0
+    # it restarts: its next sample is the room 0.2 s later than its old clock says (a new offset of +1600)
+    blocks = list(al.push(1, src[10 * FS + 1600:29 * FS], FrameFlag.NEW_CLOCK))
+    assert any("Device 1 restarted with a new clock" in m for m in al.messages)
+    after = [b for b in blocks if b.first_sample >= 10 * FS]
+    assert not after[0].valid[1]                                 # out of the beam at once
+    assert al.offsets_samples[1] == -1600 and after[-1].valid[1]  # found again by a re-check
