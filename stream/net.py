@@ -29,6 +29,7 @@ from __future__ import annotations
 import collections
 import json
 import logging
+import re
 import secrets
 import threading
 import time
@@ -173,7 +174,13 @@ class NetOptions:
             where = ", ".join(list(self.connect) + list(self.listen)) or "the default endpoints"
             hint = (" (with TLS: the device's certificate must be signed by the router's CA, and enable_mtls set "
                     "on both sides)" if "tls/" in where or self.config_file else "")
-            raise NetworkError(f"Could not open a Zenoh {self.mode} session on {where} ({err}){hint}.") from None
+            raise NetworkError(f"Could not open a Zenoh {self.mode} session on {where} ({_zenoh_text(err)}){hint}.") \
+                from None
+
+
+def _zenoh_text(err: BaseException) -> str:
+    """Zenoh's error message without its Rust source location."""
+    return re.sub(r"\s+at /\S+", "", str(err)).strip().rstrip(".")
 
 
 def quiet_zenoh() -> None:
@@ -659,6 +666,7 @@ class NetSource:
                 for arrival, frame in items:
                     lane.buffer.push(frame, arrival)
                     lane.last_arrival_s = arrival
+                    lane.said_last |= bool(frame.flags & FrameFlag.LAST)   # before its token's DELETE is read
             for name, k in index.items():
                 dev, lane = self.active[k], self._lanes[k]
                 was = dev.present
@@ -744,7 +752,6 @@ class NetSource:
         if len(c.latency_ms) < 20000 and f.capture_time_ns:
             c.latency_ms.append((time.time_ns() - f.capture_time_ns) / 1e6)
         last = bool(f.flags & FrameFlag.LAST)
-        lane.said_last |= last
         if len(x) or last:
             flags = FrameFlag(f.flags) & ~FrameFlag.LAST
             if last and not self.until_done:   # a device that ends cleanly may come back: it stays, concealed
@@ -934,7 +941,7 @@ def run_router(net: NetOptions, *, ready: Callable[[list[str]], None] | None = N
         session = zenoh.open(cfg)
     except Exception as err:  # noqa: BLE001
         raise NetworkError(f"The router could not listen on {', '.join(net.listen) or 'the default port'} "
-                           f"({err}).") from None
+                           f"({_zenoh_text(err)}).") from None
     stopped: list[str] = []
     event = threading.Event()
 

@@ -1,11 +1,15 @@
 #!/usr/bin/env bash
 # System pieces the project needs (Debian): PortAudio for sounddevice, jackd2 for the JACK dummy
-# audio server used by the sound-card tests. Installs only what is missing; needs root for apt-get.
+# audio server used by the sound-card tests, iproute2 and nftables for the network-namespace test
+# (tests/net/test_netns.py), openssl for the certificates of the TLS test. Installs only what is missing; needs root for apt-get.
 set -euo pipefail
 need=()
 ldconfig -p 2>/dev/null | grep -q libportaudio.so.2 || need+=(libportaudio2)
 command -v jackd >/dev/null 2>&1 || need+=(jackd2)
 command -v jack_lsp >/dev/null 2>&1 || need+=(jackd2)
+command -v ip >/dev/null 2>&1 || need+=(iproute2)
+command -v nft >/dev/null 2>&1 || need+=(nftables)
+command -v openssl >/dev/null 2>&1 || need+=(openssl)
 if [ ${#need[@]} -eq 0 ]; then exit 0; fi
 if [ "$(id -u)" != 0 ]; then
   echo "adhoc-array: missing system packages ${need[*]}; run: sudo apt-get install -y --no-install-recommends ${need[*]}" >&2
