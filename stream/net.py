@@ -821,9 +821,9 @@ class NetPublisher:
                                       "gated": bool(t.gated), "track_id": t.track_id, "devices": self.names}))
 
     def geometry(self, geometry) -> None:
+        """Publish a calibrated geometry (:meth:`stream.geometry.Geometry.to_json`)."""
         try:
-            self._geometry.put(json.dumps(geometry.as_dict() if hasattr(geometry, "as_dict") else vars(geometry),
-                                          default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o)))
+            self._geometry.put(geometry.to_json())
         except Exception as err:  # noqa: BLE001 - publishing must not stop the stream
             log.warning("The geometry could not be published (%s).", err)
 

@@ -293,3 +293,43 @@ def test_a_slow_engine_keeps_a_bounded_backlog():
         del token, facts
     finally:
         sender.close()
+
+
+def test_the_aggregator_publishes_toa_enhanced_audio_and_geometry():
+    """The aggregator's publisher on a real session: another session receives the enhanced hops as wire frames
+    (ending with LAST), one JSON object per TOA frame, and each geometry exactly as geometry.json holds it."""
+    from stream import wire
+    from stream.geometry import Geometry
+    from stream.messages import HopResult, ToaEstimate
+    from stream.net import Keys, NetOptions, NetPublisher
+    ep = f"tcp/127.0.0.1:{_port()}"
+    a = NetOptions(listen=[ep], scouting=False).open()
+    b = NetOptions(connect=[ep], scouting=False).open()
+    got: dict[str, list] = {"enhanced": [], "toa": [], "geometry": []}
+    try:
+        subs = [b.declare_subscriber(f"adhoc/t6/out/{k}", lambda s, k=k: got[k].append(s.payload.to_bytes()))
+                for k in got]
+        time.sleep(0.5)
+        pub = NetPublisher(a, Keys("t6"), sample_rate_hz=RATE, device_names=["p0", "p1"], frame_hops=2)
+        for k in range(5):
+            pub.write(HopResult(np.full(256, k, np.float32), ToaEstimate(k, 0.016 * k, np.array([0.0, 1e-3]), False)))
+        g = Geometry(np.eye(2, 3), np.zeros(2), np.zeros(2), np.zeros(2), np.array([0.0, 3.5]), np.ones(2),
+                     "converged", 12, device_names=("p0", "p1"))
+        pub.geometry(g)
+        pub.close()
+        t_end = time.monotonic() + 5
+        while len(got["enhanced"]) < 3 and time.monotonic() < t_end:
+            time.sleep(0.02)
+        del subs
+    finally:
+        b.close()
+        a.close()
+    frames = [wire.decode(p) for p in got["enhanced"]]
+    assert [f.first_sample for f in frames] == [0, 512, 1024] and frames[-1].flags & wire.FrameFlag.LAST
+    np.testing.assert_array_equal(np.concatenate([f.samples[:, 0] for f in frames]), np.repeat(np.arange(5.0), 256))
+    toa = [json.loads(p) for p in got["toa"]]
+    assert len(toa) == 5 and toa[1] == {"time_s": 0.016, "toa_s": [0.0, 0.001], "gated": False, "track_id": -1,
+                                        "devices": ["p0", "p1"]}
+    back = Geometry.from_dict(json.loads(got["geometry"][0]))
+    np.testing.assert_array_equal(back.drifts_ppm, [0.0, 3.5])
+    assert tuple(back.device_names) == ("p0", "p1") and back.verdict == "converged"
