@@ -129,7 +129,7 @@ def _run_net(args: argparse.Namespace) -> int:
     expect = [n.strip() for n in args.expect.split(",") if n.strip()] if args.expect else []
     outcome = net.run_aggregate(args.out, _net(args), array=args.array, expect=expect, discover_s=args.discover_s,
                                 jitter_s=args.jitter_s, until_done=args.until_done, max_duration_s=args.duration,
-                                overrides=layers)
+                                overrides=layers, status=args.status)
     print(summary(outcome.report, Path(args.out)))
     return 0 if outcome.report["status"] == "ok" else 1
 
@@ -222,6 +222,7 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--until-done", action="store_true",
                     help="end when every device has ended its stream (default: only Ctrl-C ends)")
     ap.add_argument("--duration", type=float, metavar="S", help="stop after this much audio of the reference")
+    ap.add_argument("--no-status", dest="status", action="store_false", help="no status line")
     ap.add_argument("--config", help="TOML file with engine options")
     _add_net_options(ap)
     _add_engine_options(ap)

@@ -975,10 +975,44 @@ def router_locators(session) -> list[str]:
 
 
 # the aggregator --------------------------------------------------------------------------------------------
+def _status_line():
+    from .live import StatusLine
+
+    class NetStatus(StatusLine):
+        """The aggregator's status line: per device presence, frames lost and network latency; TOA, gating, CPU."""
+
+        def text(self, pipeline) -> str:
+            wall, cpu = time.perf_counter(), time.process_time()
+            load = (cpu - self._t[1]) / max(wall - self._t[0], 1e-9)
+            self._t = (wall, cpu)
+            src = self.source
+            ref = src._lanes[0] if src._lanes else None
+            parts = [f"{(ref.pos if ref else 0) / src.active[0].sample_rate_hz:7.1f} s"]
+            if not pipeline.aligner.ready:
+                parts[0] += " (aligning the devices)"
+            for dev, lane in zip(src.active, src._lanes):
+                c = lane.buffer.counters
+                state = "" if dev.present else " GONE"
+                lat = np.median(c.latency_ms[-200:]) if c.latency_ms else float("nan")
+                parts.append(f"{dev.name}{state} {lat:.1f} ms" + (f" lost {c.n_lost_frames}" if c.n_lost_frames
+                                                                   else ""))
+            line = " | ".join(parts)
+            bad = sum(src._malformed.values())
+            if bad:
+                line += f" | malformed {bad}"
+            st = pipeline.state
+            if len(st.toa_s):
+                line += " | TOA ms " + " ".join(f"{1e3 * v:+.2f}" for v in st.toa_s[-1][1:])
+            return line + f" | gated {pipeline.counters.n_gated} | CPU {100 * load:.0f}%"
+
+    return NetStatus
+
+
 def run_aggregate(out_dir: str | Path, net: NetOptions, *, array: str = "default", expect: Sequence[str] = (),
                   discover_s: float = 5.0, jitter_s: float = 0.1, hold_s: float = 0.5, until_done: bool = False,
                   max_duration_s: float | None = None, config=None,
-                  overrides: Sequence[tuple[dict[str, Any], str]] = (), handle_signals: bool = True):
+                  overrides: Sequence[tuple[dict[str, Any], str]] = (), status: bool = True,
+                  handle_signals: bool = True):
     """Run the engine on every device of ``array`` until stopped (or, with ``until_done``, until they end).
 
     Writes what ``replay`` writes into ``out_dir`` (report.json gains a ``network`` section), and publishes the
@@ -1018,10 +1052,13 @@ def run_aggregate(out_dir: str | Path, net: NetOptions, *, array: str = "default
             except Exception as err:  # noqa: BLE001 - closing must not lose the report
                 log.warning("Closing the network outputs failed (%s).", err)
         report["network"] = source.network_report or source.report()
+        if line is not None:
+            line.close()
 
+    line = _status_line()(source) if status else None
     try:
         outcome = run_stream(source, out_dir, config=cfg, extra_sinks=[Publish()], on_geometry=on_geometry,
-                             extra_report=extra, handle_signals=handle_signals)
+                             extra_report=extra, handle_signals=handle_signals, status=line)
     finally:
         session.close()
     return outcome
