@@ -43,6 +43,7 @@ from . import wire
 from .errors import AdhocArrayError, ConfigError
 from .messages import Frame, FrameFlag, HopResult
 from .replay import DeviceInfo
+from .stopping import install_stop_handlers as _install_stop_handlers
 
 log = logging.getLogger(__name__)
 
@@ -228,7 +229,7 @@ def run_device(name: str, source, net: NetOptions, *, array: str = "default", sa
     instance = secrets.randbits(63)
     session = net.open()
     stopped: list[str] = []
-    restore = _stop_on_signals(source, stopped) if handle_signals else (lambda: None)
+    restore = _install_stop_handlers(source, stopped) if handle_signals else (lambda: None)
     facts: dict[str, Any] = {"name": name, "instance": instance, "software": f"adhoc-array {_version()}",
                              "gain": gain, "sample_format": sample_format, "input": describe}
     try:
@@ -308,23 +309,6 @@ def _version() -> str:
         return version("adhoc-array")
     except PackageNotFoundError:
         return "unknown"
-
-
-def _stop_on_signals(source, stopped: list[str]) -> Callable[[], None]:
-    import signal
-    if threading.current_thread() is not threading.main_thread():
-        return lambda: None
-    old = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
-
-    def handler(signum, _frame) -> None:
-        if stopped:
-            raise KeyboardInterrupt
-        stopped.append(signal.Signals(signum).name)
-        source.stop()
-
-    for s in old:
-        signal.signal(s, handler)
-    return lambda: [signal.signal(s, h) for s, h in old.items()]
 
 
 # jitter buffer ---------------------------------------------------------------------------------------------
@@ -869,7 +853,7 @@ def listen(key: str, out: str | Path, net: NetOptions, *, max_duration_s: float 
         def stop(self) -> None:
             wake.set()
 
-    restore = _stop_on_signals(_Stopper(), stop)
+    restore = _install_stop_handlers(_Stopper(), stop)
     summary = {"key": key, "out": str(out), "n_frames": 0, "n_samples": 0, "n_gaps": 0, "n_malformed": 0,
                "n_lines": 0}
     wav = None
@@ -949,7 +933,7 @@ def run_router(net: NetOptions, *, ready: Callable[[list[str]], None] | None = N
         def stop(self) -> None:
             event.set()
 
-    restore = _stop_on_signals(_Stopper(), stopped)
+    restore = _install_stop_handlers(_Stopper(), stopped)
     try:
         locators = router_locators(session)
         if ready is not None:

@@ -23,6 +23,7 @@ from .fixture import Fixture, is_fixture_dir, load_fixture
 from .geometry import Geometry
 from .pipeline import Pipeline
 from .messages import HopSink
+from .stopping import install_stop_handlers as _install_stop_handlers
 from .replay import ReplaySource
 
 log = logging.getLogger(__name__)
@@ -289,32 +290,6 @@ def run_stream(source, out_dir: str | Path, *, config: EngineConfig, fixture: Fi
         extra_report(report)
     _finalise(report, out, cfg, pipeline, fixture, names, collector, t_wall0, t_cpu0, wav, csv_sink)
     return RunOutcome(report, pipeline, out)
-
-
-def _install_stop_handlers(source, stopped: list[str]) -> Callable[[], None]:
-    """SIGINT/SIGTERM: the first stops the source (the stream ends cleanly with what it has), a second one
-    raises KeyboardInterrupt. Only in the main thread; returns a function that restores the old handlers."""
-    import signal
-    import threading
-    if threading.current_thread() is not threading.main_thread():
-        return lambda: None
-    old = {}
-
-    def handler(signum, _frame) -> None:
-        name = signal.Signals(signum).name
-        if stopped:
-            raise KeyboardInterrupt
-        stopped.append(name)
-        log.info("%s: stopping the stream; what was captured is processed and written.", name)
-        source.stop()
-
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        old[sig] = signal.signal(sig, handler)
-
-    def restore() -> None:
-        for sig, h in old.items():
-            signal.signal(sig, h)
-    return restore
 
 
 def observed_drift_ppm(time_s: np.ndarray, toa_s: np.ndarray, gated: np.ndarray, *,
