@@ -346,7 +346,7 @@ def summary(report: dict[str, Any], out: Path) -> str:
             lat = d.get("latency_ms", {})
             lines.append(f"  {name}: {d['n_frames']} frames, {d['n_lost_frames']} lost, {d['n_reordered']} reordered, "
                          f"{d['n_concealed_samples']} samples concealed, {d['n_restarts']} restarts; capture to "
-                         f"engine p50 {_fmt(lat.get('p50'), '.1f')} / p99 {_fmt(lat.get('p99'), '.1f')} ms")
+                         f"arrival p50 {_fmt(lat.get('p50'), '.1f')} / p99 {_fmt(lat.get('p99'), '.1f')} ms")
         for key, n in nw.get("malformed", {}).items():
             lines.append(f"  ! {n} malformed frames from {key} were rejected")
     problems = [p for d in report.get("devices", []) for p in d.get("problems", [])]

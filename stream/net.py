@@ -327,7 +327,29 @@ class NetCounters:
     n_malformed: int = 0
     n_departures: int = 0
     start_sample: int = -1            # where the device's first sample was placed on its engine-side clock
-    latency_ms: list[float] = field(default_factory=list)   # capture-to-release, a bounded sample
+
+
+class _Reservoir:
+    """A uniform sample of at most ``size`` values of a whole run (Vitter's algorithm R)."""
+
+    def __init__(self, size: int = 20000, seed: int = 0) -> None:
+        self._v = np.empty(size)
+        self.n = 0
+        self.recent = float("nan")     # exponential average of the latest values (a status line's figure)
+        self._rng = np.random.default_rng(seed)
+
+    def add(self, value: float) -> None:
+        self.recent = value if self.n == 0 else 0.9 * self.recent + 0.1 * value
+        if self.n < len(self._v):
+            self._v[self.n] = value
+        else:
+            j = int(self._rng.integers(0, self.n + 1))
+            if j < len(self._v):
+                self._v[j] = value
+        self.n += 1
+
+    def values(self) -> np.ndarray:
+        return self._v[:min(self.n, len(self._v))].copy()
 
 
 class JitterBuffer:
@@ -474,6 +496,7 @@ class NetSource:
         self._inbox: dict[str, collections.deque] = {}
         self._inbox_samples: dict[str, int] = {}
         self._overrun: dict[str, int] = {}
+        self._latencies: dict[str, _Reservoir] = {}
         self._present: dict[str, bool] = {}
         self._malformed: dict[str, int] = {}
         self._malformed_said: set[str] = set()
@@ -524,6 +547,12 @@ class NetSource:
             self._session.close()
         self._session = None
 
+    def _latency(self, name: str) -> "_Reservoir":
+        r = self._latencies.get(name)
+        if r is None:
+            r = self._latencies[name] = _Reservoir()
+        return r
+
     # zenoh callbacks (zenoh's threads: record and wake only) ---------------------------------------------
     def _on_alive(self, sample) -> None:
         import zenoh
@@ -546,7 +575,10 @@ class NetSource:
                 log.warning("A malformed frame from '%s' was rejected (%s); further ones from it are counted.",
                             key, err)
             return
+        now_ns = time.time_ns()
         with self._lock:
+            if frame.capture_time_ns:
+                self._latency(name).add((now_ns - frame.capture_time_ns) / 1e6)
             box = self._inbox.get(name)
             if box is None:
                 box = self._inbox[name] = collections.deque()
@@ -733,8 +765,6 @@ class NetSource:
             c.n_late_frames += cut == len(x)
             x = x[cut:]
             first += cut
-        if len(c.latency_ms) < 20000 and f.capture_time_ns:
-            c.latency_ms.append((time.time_ns() - f.capture_time_ns) / 1e6)
         last = bool(f.flags & FrameFlag.LAST)
         if len(x) or last:
             flags = FrameFlag(f.flags) & ~FrameFlag.LAST
@@ -761,15 +791,16 @@ class NetSource:
             n -= m
 
     def report(self) -> dict[str, Any]:
-        """Per-device network counters and latency (capture to release) percentiles."""
+        """Per-device network counters and one-way latency (capture to arrival) percentiles."""
         out: dict[str, Any] = {"array": self.keys.array, "devices": {}, "malformed": dict(self._malformed),
                                "strangers": sorted(self._strangers)}
         for dev, lane in zip(self.active, self._lanes):
             c = lane.buffer.counters
             c.n_overrun_frames = self._overrun.get(dev.name, 0)
-            lat = np.asarray(c.latency_ms)
-            d = {k: v for k, v in vars(c).items() if k != "latency_ms"}
-            if len(lat):
+            with self._lock:
+                lat = self._latency(dev.name).values()
+            d = dict(vars(c))
+            if len(lat):     # capture (the sender's clock) to arrival: the network's one-way latency
                 d["latency_ms"] = {"p50": float(np.percentile(lat, 50)), "p99": float(np.percentile(lat, 99)),
                                    "max": float(lat.max())}
             out["devices"][dev.name] = d
@@ -977,7 +1008,7 @@ def _status_line():
             for dev, lane in zip(src.active, src._lanes):
                 c = lane.buffer.counters
                 state = "" if dev.present else " GONE"
-                lat = np.median(c.latency_ms[-200:]) if c.latency_ms else float("nan")
+                lat = src._latency(dev.name).recent
                 parts.append(f"{dev.name}{state} {lat:.1f} ms" + (f" lost {c.n_lost_frames}" if c.n_lost_frames
                                                                    else ""))
             line = " | ".join(parts)

@@ -92,7 +92,7 @@ def test_devices_to_the_aggregator_give_what_replay_gives_and_malformed_frames_a
     per sender key and reported once each."""
     from stream import wire
     from stream.live import LIVE_DEFAULTS
-    from stream.net import NetOptions
+    from stream.net import NetOptions, _wait_for_token
     from stream.run import run_replay
     port, out = _port(), tmp_path / "agg"
     ep = f"tcp/127.0.0.1:{port}"
@@ -105,7 +105,8 @@ def test_devices_to_the_aggregator_give_what_replay_gives_and_malformed_frames_a
     # the rogue publisher: a peer of the aggregator, sending on a stranger's key and on phone1's
     rogue = NetOptions(connect=[ep], scouting=False).open()
     try:
-        time.sleep(3.0)
+        assert _wait_for_token(rogue, "adhoc/t1/aggregator/alive", 30.0)   # its subscriber is there
+        time.sleep(1.0)
         good = wire.encode(np.zeros(64, np.float32), seq=0, first_sample=0, sample_rate_hz=RATE, instance=1,
                            sample_format="float32")
         nan = wire.encode(np.full(64, np.nan, np.float32), seq=0, first_sample=0, sample_rate_hz=RATE, instance=1,
