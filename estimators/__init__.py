@@ -14,8 +14,22 @@ from .hybrid_tdoa import (CalibrationResult, CrlbResult, HybridTdoaProblem, MicF
                           crlb, estimate_noise_levels, mic_frame_error, random_initial_scene, simulate_problem,
                           to_mic_frame)
 from .hybrid_tdoa import solve as solve_hybrid_tdoa
+from .multi_array import (ArrayPose, CalibrationInputError, MultiArrayCalibration, calibrate_arrays,
+                          calibrate_from_locations, localization_covariance, localize_spherical_ls, refine_mle,
+                          rigid_body_ransac, rotation_error_deg, translation_angle_error_deg)
 
 __all__ = [
+    "ArrayPose",
+    "CalibrationInputError",
+    "MultiArrayCalibration",
+    "calibrate_arrays",
+    "calibrate_from_locations",
+    "localization_covariance",
+    "localize_spherical_ls",
+    "refine_mle",
+    "rigid_body_ransac",
+    "rotation_error_deg",
+    "translation_angle_error_deg",
     "SPEED_OF_SOUND_M_S",
     "pair_matrix",
     "pairs",

@@ -260,7 +260,13 @@ def build_parser() -> argparse.ArgumentParser:
     src.add_argument("--measurements", metavar="FILE", help="measured TDOAs and odometry (.npz or .json)")
     src.add_argument("--odometry", metavar="CSV", help="the beacon's odometry for AUDIO (dx_m,dy_m,dz_m[,interval_s])")
     cp.add_argument("--out", required=True, help="output folder")
-    cp.add_argument("--method", choices=["hybrid", "baseline"], default="hybrid", help="solver (default hybrid)")
+    cp.add_argument("--method", choices=["hybrid", "baseline", "multi-array"], default="hybrid",
+                    help="solver (default hybrid); multi-array: poses of synchronous arrays from probe recordings "
+                         "(--arrays)")
+    cp.add_argument("--arrays", metavar="TOML|DIR", help="multi-array: the arrays file (name, file, mics_m per "
+                                                          "array), or a folder holding arrays.toml")
+    cp.add_argument("--multi-array-method", choices=["mle", "rigid_body"], default="mle",
+                    help="multi-array: maximum likelihood (default) or the rigid-body baseline")
     cp.add_argument("--mics", help="hybrid-TDOA real data: global mic numbers, e.g. 0,6,12,9,13,15 (array 1 first)")
     cp.add_argument("--chirp-interval-s", type=float, help="time between chirps, if the odometry has no interval_s")
     cp.add_argument("--chirp-duration-s", type=float, default=0.1, help="chirp duration (default 0.1 s)")
@@ -380,7 +386,33 @@ def calibration_summary(result: dict[str, Any], out: Path) -> str:
     return "\n".join(lines)
 
 
+def multi_array_summary(result: dict[str, Any], out: Path) -> str:
+    """One screen for ``adhoc-array calibrate --method multi-array``."""
+    verdict = "converged" if result["converged"] else "NOT converged: do not use these poses"
+    lines = [f"adhoc-array calibrate (multi-array, {result['method']}): {verdict}  ->  {out}",
+             f"  {len(result['arrays'])} arrays, {result['n_probes']} probes heard by all, "
+             f"{len(result['rejected_probes'])} rejected as outliers, {1e3 * result['solve_s']:.0f} ms"]
+    for a in result["arrays"]:
+        r, rs = a["rotation_deg"], a["rotation_std_deg"]
+        t, ts = a["translation_m"], a["translation_std_m"]
+        lines.append(f"  {a['name']:>10}: roll/pitch/yaw ({r[0]:+.1f}, {r[1]:+.1f}, {r[2]:+.1f})° "
+                     f"± ({rs[0]:.1f}, {rs[1]:.1f}, {rs[2]:.1f})   t ({t[0]:+.3f}, {t[1]:+.3f}, {t[2]:+.3f}) m "
+                     f"± ({ts[0]:.3f}, {ts[1]:.3f}, {ts[2]:.3f})   {a['n_events']} events")
+    if result["rejected_probes"]:
+        lines.append(f"  rejected probes (inconsistent across the arrays): {result['rejected_probes']}")
+    lines.append(f"  wrote: {', '.join(result['outputs'])}")
+    return "\n".join(lines)
+
+
 def _run_calibrate(args: argparse.Namespace) -> int:
+    if args.method == "multi-array":
+        from .arrays import run_multi_array
+        if not args.arrays:
+            raise ConfigError("--method multi-array needs --arrays FILE (name, file and mics_m of each array).")
+        result = run_multi_array(args.arrays, args.out, method=args.multi_array_method, sigma_tdoa_s=args.sigma_tdoa_s,
+                                 seed=args.seed, plots=args.plots)
+        print(multi_array_summary(result, Path(args.out)))
+        return 0 if result["converged"] else 1
     from .calibration import run_calibrate
     mics = None
     if args.mics:
