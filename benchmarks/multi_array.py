@@ -79,26 +79,8 @@ PAPER_TEXT = {  # what the paper's text states (its figures' values are not in t
 
 
 # ----------------------------------------------------------------------------------------------- scene
-def grid_array_m() -> np.ndarray:
-    """The paper's 18-mic array (Fig. 4), shape (18, 3) m; row 0 (the reference) at the local origin."""
-    g = GRID_SPACING_M * np.array([-1.0, 0.0, 1.0])
-    yy, zz = np.meshgrid(g, g, indexing="ij")
-    front = np.stack([np.zeros(9), yy.ravel(), zz.ravel()], 1)
-    mics = np.concatenate([front, front - [PLANE_OFFSET_M, 0.0, 0.0]])
-    ref = int(np.argmin(np.sum(mics**2, 1)))
-    return mics[[ref] + [i for i in range(len(mics)) if i != ref]]
-
-
-MICS_M = grid_array_m()
-
-
-def make_scene(d_m: float, yaw_deg: float, n_sources: int, rng: np.random.Generator):
-    """True pose of array 2 and the probe positions in array 1's (the reference) frame."""
-    centre = np.array([d_m, 0.0, 0.0])
-    y = np.radians(yaw_deg)
-    pose = ma.ArrayPose.from_deg([0.0, 0.0, yaw_deg], centre - d_m * np.array([np.cos(y), np.sin(y), 0.0]))
-    half = np.array([min(1.0, d_m / 2), min(1.0, d_m / 2), 0.5])
-    return pose, centre + rng.uniform(-1.0, 1.0, (n_sources, 3)) * half
+MICS_M = ma.paper_array_m(GRID_SPACING_M, PLANE_OFFSET_M)
+make_scene = ma.paper_scene
 
 
 def true_tdoa_s(sources_local_m: np.ndarray, mics_m: np.ndarray = MICS_M) -> np.ndarray:

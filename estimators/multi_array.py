@@ -100,6 +100,8 @@ __all__ = [
     "rotation_error_deg",
     "rotation_matrix_from_deg",
     "translation_angle_error_deg",
+    "paper_array_m",
+    "paper_scene",
 ]
 
 log = logging.getLogger(__name__)
@@ -1320,3 +1322,27 @@ def calibrate_arrays(tdoa_s: Sequence, mic_positions_m: Sequence, *, sigma_tdoa_
     res = calibrate_from_locations(pts, covs, method=method,
                                    reference_array=reference_array, rng=rng, **options)
     return dataclasses.replace(res, sigma_tdoa_s=float(sig[0]), speed_of_sound_m_s=float(speed_of_sound_m_s))
+
+
+# ------------------------------------------------------------------------------------------ the paper's setup
+def paper_array_m(spacing_m: float = 0.35, plane_offset_m: float = 0.2) -> np.ndarray:
+    """The paper's 18-mic array (Fig. 4): two parallel 3 x 3 grids of ``spacing_m``, ``plane_offset_m`` apart,
+    looking along +x; shape (18, 3) m, row 0 (the reference mic) at the local origin."""
+    g = spacing_m * np.array([-1.0, 0.0, 1.0])
+    yy, zz = np.meshgrid(g, g, indexing="ij")
+    front = np.stack([np.zeros(9), yy.ravel(), zz.ravel()], 1)
+    mics = np.concatenate([front, front - [plane_offset_m, 0.0, 0.0]])
+    ref = int(np.argmin(np.sum(mics**2, 1)))
+    return mics[[ref] + [i for i in range(len(mics)) if i != ref]]
+
+
+def paper_scene(d_m: float, yaw_deg: float, n_sources: int, rng: np.random.Generator) -> tuple[ArrayPose, np.ndarray]:
+    """The paper's experiments: array 1 at the origin, ``n_sources`` probes around ``[d, 0, 0]``, array 2 at
+    distance ``d`` from them, turned by ``yaw_deg`` and looking at them. Returns array 2's true pose and the
+    probe positions in array 1's frame (metres)."""
+    centre = np.array([d_m, 0.0, 0.0])
+    y = np.radians(yaw_deg)
+    pose = ArrayPose.from_deg([0.0, 0.0, yaw_deg], centre - d_m * np.array([np.cos(y), np.sin(y), 0.0]))
+    half = np.array([min(1.0, d_m / 2), min(1.0, d_m / 2), 0.5])
+    return pose, centre + rng.uniform(-1.0, 1.0, (n_sources, 3)) * half
+

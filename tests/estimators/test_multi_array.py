@@ -14,26 +14,8 @@ C_M_S = 343.0
 FS_HZ = 96_000.0
 
 
-def grid_array_m() -> np.ndarray:
-    """The paper's 18-mic array: two 3 x 3 grids (0.35 m) 0.2 m apart, looking along +x; mic 0 at the origin."""
-    g = 0.35 * np.array([-1.0, 0.0, 1.0])
-    yy, zz = np.meshgrid(g, g, indexing="ij")
-    front = np.stack([np.zeros(9), yy.ravel(), zz.ravel()], 1)
-    mics = np.concatenate([front, front - [0.2, 0.0, 0.0]])
-    ref = int(np.argmin(np.sum(mics**2, 1)))
-    return mics[[ref] + [i for i in range(18) if i != ref]]
-
-
-MICS = grid_array_m()
-
-
-def scene(d_m: float, yaw_deg: float, n_sources: int, rng: np.random.Generator):
-    """Array 1 at the origin, probes around [d, 0, 0], array 2 at distance d from them looking at them."""
-    centre = np.array([d_m, 0.0, 0.0])
-    y = np.radians(yaw_deg)
-    pose = ma.ArrayPose.from_deg([0.0, 0.0, yaw_deg], centre - d_m * np.array([np.cos(y), np.sin(y), 0.0]))
-    half = np.array([min(1.0, d_m / 2), min(1.0, d_m / 2), 0.5])
-    return pose, centre + rng.uniform(-1.0, 1.0, (n_sources, 3)) * half
+MICS = ma.paper_array_m()
+scene = ma.paper_scene
 
 
 def tdoa_s(sources_local_m: np.ndarray, mics_m: np.ndarray = MICS, ref: int = 0) -> np.ndarray:
