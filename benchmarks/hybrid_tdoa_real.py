@@ -9,9 +9,19 @@ own and count in the solve time. Location error: RMS over mics 2..M in the frame
 Prints one JSON line ``{"M4": {"hybrid": {...}, "baseline": {...}}, ...}`` with per method ``cases``,
 ``conv_rate`` (verdict ``converged``), ``wrong_min_rate`` (converged with error > 0.5 m), ``median_m``, ``iqr_m``
 (over converged runs), ``median_solve_s`` (wall clock; plus ``median_solve_cpu_s``, the thread's CPU time,
-which is what a shared machine cannot inflate), ``p90_solve_s`` and ``median_all_m`` (all cases).
+which is what a shared machine cannot inflate), ``p90_solve_s``, ``median_all_m`` and ``median_chi2_per_dof``
+(all cases; chi-square of the kept measurements), and what the solver rejected as gross errors:
+``cases_with_rejections`` and ``rejected`` (counts per kind over all cases).
+
+``--cases partC_caseE`` (or any other Part C list of ``cases.json``; those are M = 6) runs that list instead
+of Part A: case E is every selection of every recording, gross errors included (Part A's selection rule keeps
+recording 1, whose emission interval ``dt[2]`` is about 1 ms off, out). ``--cases all`` runs every selection
+``(i, j, k)`` of every recording at each M of ``--mics``. ``--recs 1`` keeps only the cases of those
+recordings.
 
     python benchmarks/hybrid_tdoa_real.py --data ../shared/data/hybrid_tdoa_real [--max-cases 20]
+    python benchmarks/hybrid_tdoa_real.py --data ../shared/data/hybrid_tdoa_real --cases partC_caseE
+    python benchmarks/hybrid_tdoa_real.py --data ../shared/data/hybrid_tdoa_real --cases all --recs 1
 """
 from __future__ import annotations
 
@@ -39,6 +49,7 @@ from estimators.hybrid_tdoa import (  # noqa: E402
 
 MIC_NUMBERS = (4, 6, 8, 10)
 WRONG_MIN_M = 0.5
+REJECTED_KINDS = ("interval", "tdoa_events", "tdoa_mics", "odometry")
 
 
 def mic_ids(m: int, i: int, j: int, k: int) -> np.ndarray:
@@ -80,7 +91,8 @@ def build_case(rec: dict, m: int, i: int, j: int, k: int) -> tuple[HybridTdoaPro
     return problem, truth
 
 
-def summarise(errors: list[float], verdicts: list[str], times: list[float], cpu_times: list[float]) -> dict:
+def summarise(errors: list[float], verdicts: list[str], times: list[float], cpu_times: list[float],
+              rejected: list[dict[str, int]], chi2: list[float]) -> dict:
     e = np.asarray(errors)
     conv = np.asarray([v == "converged" for v in verdicts])
     ec = e[conv]
@@ -95,7 +107,19 @@ def summarise(errors: list[float], verdicts: list[str], times: list[float], cpu_
         "median_solve_cpu_s": round(float(np.median(cpu_times)), 5) if len(cpu_times) else None,
         "p90_solve_s": round(float(np.percentile(times, 90)), 5) if len(times) else None,
         "median_all_m": round(float(np.median(e)), 4) if len(e) else None,
+        "median_chi2_per_dof": round(float(np.median(chi2)), 3) if len(chi2) else None,
+        "cases_with_rejections": int(sum(1 for r in rejected if sum(r.values()))),
+        "rejected": {kind: int(sum(r.get(kind, 0) for r in rejected)) for kind in REJECTED_KINDS},
     }
+
+
+def rejected_counts(res) -> dict[str, int]:
+    """Rejected measurements of one solve by kind (``CalibrationResult.rejected``; the solver before it had
+    only ``outliers_tdoa_*``)."""
+    rej = getattr(res, "rejected", None)
+    if rej is None:
+        return {"tdoa_events": int(res.outliers_tdoa_events.sum()), "tdoa_mics": int(res.outliers_tdoa_mics.sum())}
+    return {kind: sum(1 for r in rej if r.kind == kind) for kind in REJECTED_KINDS}
 
 
 def main(argv=None) -> int:
@@ -104,7 +128,10 @@ def main(argv=None) -> int:
     ap.add_argument("--max-cases", type=int, default=None, help="per M, evenly spaced subset (development)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--methods", default="hybrid,baseline")
-    ap.add_argument("--mics", default="4,6,8,10")
+    ap.add_argument("--mics", default="4,6,8,10", help="Part A and all")
+    ap.add_argument("--cases", default="partA",
+                    help="partA (default), all (every selection), or a Part C list of cases.json, e.g. partC_caseE")
+    ap.add_argument("--recs", default=None, help="only these recordings, e.g. 1,2")
     args = ap.parse_args(argv)
     cases = json.loads((args.data / "cases.json").read_text())
     recs = {}
@@ -114,11 +141,24 @@ def main(argv=None) -> int:
     rng = np.random.default_rng(args.seed)
     methods = args.methods.split(",")
     out = {}
-    for m in (int(v) for v in args.mics.split(",")):
-        lst = [c for c in cases[f"partA_M{m}"] if c["rec_id"] in recs]
+    keep = set(recs) if args.recs is None else {int(v) for v in args.recs.split(",")} & set(recs)
+    mic_numbers = [int(v) for v in args.mics.split(",")]
+    if args.cases == "partA":
+        lists = [(f"M{m}", m, cases[f"partA_M{m}"]) for m in mic_numbers]
+    elif args.cases == "all":
+        every = [{"rec_id": r, "i": i, "j": j, "k": k} for r in sorted(recs)
+                 for i in range(1, 7) for j in range(1, 7) for k in range(1, 7)]
+        lists = [(f"all_M{m}", m, every) for m in mic_numbers]
+    elif args.cases in cases and args.cases.startswith("partC"):
+        lists = [(f"{args.cases}_M6", 6, cases[args.cases])]
+    else:
+        raise SystemExit(f"--cases {args.cases!r}: 'partA', 'all' or one of the Part C lists "
+                         f"{sorted(c for c in cases if c.startswith('partC'))}")
+    for key, m, lst in lists:
+        lst = [c for c in lst if c["rec_id"] in keep]
         if args.max_cases is not None and len(lst) > args.max_cases:
             lst = [lst[t] for t in np.linspace(0, len(lst) - 1, args.max_cases).astype(int)]
-        acc = {meth: ([], [], [], []) for meth in methods}
+        acc = {meth: ([], [], [], [], [], []) for meth in methods}
         for c in lst:
             problem, truth = build_case(recs[c["rec_id"]], m, c["i"], c["j"], c["k"])
             init = random_initial_scene(problem.n_mics, problem.n_events, rng=rng)
@@ -130,7 +170,9 @@ def main(argv=None) -> int:
                 acc[meth][1].append(res.verdict)
                 acc[meth][2].append(dt)
                 acc[meth][3].append(dc)
-        out[f"M{m}"] = {meth: summarise(*acc[meth]) for meth in methods}
+                acc[meth][4].append(rejected_counts(res))
+                acc[meth][5].append(res.chi2_per_dof)
+        out[key] = {meth: summarise(*acc[meth]) for meth in methods}
     print(json.dumps(out))
     return 0
 

@@ -11,14 +11,16 @@ from .multipeak import NoiseAwareGcc
 from .tracks import SourceTracker, Track
 from .chirps import ChirpDetector, ChirpTdoas, detect_chirps, extract_tdoas, gcc_phat_delays, linear_chirp, matched_filter
 from .hybrid_tdoa import (CalibrationResult, CrlbResult, HybridTdoaProblem, MicFrameScene, NoiseLevels, Scene,
-                          crlb, estimate_noise_levels, mic_frame_error, random_initial_scene, simulate_problem,
-                          to_mic_frame)
+                          RejectedMeasurement, crlb, estimate_noise_levels, mic_frame_error, random_initial_scene,
+                          simulate_problem, to_mic_frame, without_rejected)
 from .hybrid_tdoa import solve as solve_hybrid_tdoa
 from .multi_array import (ArrayPose, CalibrationInputError, MultiArrayCalibration, calibrate_arrays,
                           calibrate_from_locations, localization_covariance, localize_spherical_ls, refine_mle,
                           rigid_body_ransac, rotation_error_deg, translation_angle_error_deg)
 
 __all__ = [
+    "RejectedMeasurement",
+    "without_rejected",
     "ArrayPose",
     "CalibrationInputError",
     "MultiArrayCalibration",

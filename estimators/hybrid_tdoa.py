@@ -38,16 +38,36 @@ Budgets are iterations, never wall-clock time. Each start ends with a verdict:
 - the minimum is *certified* mic by mic: each mic's own subproblem (its TDOA-S and TDOA-M, events and mic 0
   fixed) is searched globally on a grid and refined; a mic with a clearly better position elsewhere makes the
   verdict ``suspect_local_minimum`` and the next start moves it there;
+- gross errors are rejected before the verdict, and the verdict is on the kept measurements (below);
 - residuals must be plausible for the assumed noise (robust scale, cost per degree of freedom, per-mic fit,
   odometry consistency); an implausible but certified minimum triggers one more start and is accepted as
-  ``converged`` if reached again;
-- after convergence, TDOAs above ``reject_sigma`` are dropped as gross mis-detections and the solution is
-  polished without them (reported in the result).
+  ``converged`` if reached again.
+
+Gross errors (``reject_sigma``, :class:`RejectedMeasurement`): at a converged start, linearised outlier tests
+with the robust-loss weights (studentised residual of each TDOA; for each emission interval the score test
+of one more parameter, its error ``e_j``, shared by the TDOA-S of all mics in row ``j``), in robustly scaled
+sigmas. A round frees the worst interval above ``reject_sigma`` (a wrong ``interval_s[j]``, e.g. 1 ms off,
+moves every TDOA-S of its row together and is otherwise absorbed by bending the trajectory against the
+odometry), else drops the worst TDOA of each mic above it (one at a time per mic: a gross error inflates the
+residuals of its own mic most); the solution is re-solved on the kept set and the tests repeat until nothing
+is left (at most 10 % of the TDOAs). Chi-square, robust scale, verdict and the Fisher information
+(``with_covariance``, estimated interval errors as nuisance parameters) are of the kept set
+(:func:`without_rejected`, :func:`crlb` with ``unknown_intervals``). A minimum that needed an interval
+estimated is accepted from the built-in initialisation, from another start only once a second start reaches
+it (an interval error can also absorb the misfit of a wrong basin). Odometry steps are only rejected with
+``reject_odometry=True``: on the real data one vertical step is all that separates the two event layers, and
+without it the events collapse onto one plane where any mic can be mirrored through it (a wrong basin that
+then fits).
 
 Restarts after a bad verdict use a built-in initialisation instead of random draws: events from the
 integrated odometry, each mic by a grid search on its own TDOA-S (position and least-squares drift), offsets
 from TDOA-M. ``method="baseline"`` drops TDOA-S (the TDOA-M + odometry method the paper compares with); only
-relative drifts are observable then (``delta_0 = 0``) and its restarts are random around the odometry.
+relative drifts are observable then (``delta_0 = 0``). Its built-in start (the first without ``init``, the
+third with it) places the reference mic 0, which is in every TDOA-M, by a global search (each grid point
+scored by how well all other mics' TDOA-M can then be fitted, a Gram-matrix expansion of the least-squares
+residual) and the other mics by a grid search on their own TDOA-M; other baseline starts draw the mics at
+random around the odometry. A converged baseline start whose mic 0 scores clearly worse than that search's
+best is solved again from there and the lower cost kept (mic 0 has no subproblem of its own to certify).
 
 Frames
 ------
@@ -63,6 +83,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+from collections.abc import Sequence
 from typing import Literal
 
 import numpy as np
@@ -74,6 +95,7 @@ from .conventions import SPEED_OF_SOUND_M_S
 
 __all__ = [
     "CalibrationResult",
+    "RejectedMeasurement",
     "CrlbResult",
     "HybridTdoaProblem",
     "MicFrameScene",
@@ -86,6 +108,7 @@ __all__ = [
     "simulate_problem",
     "solve",
     "to_mic_frame",
+    "without_rejected",
 ]
 
 logger = logging.getLogger(__name__)
@@ -222,6 +245,43 @@ class Scene:
 
 
 @dataclasses.dataclass(frozen=True)
+class RejectedMeasurement:
+    """One measurement :func:`solve` rejected as a gross error (see its ``reject_sigma``).
+
+    Attributes
+    ----------
+    kind : {"interval", "tdoa_events", "tdoa_mics", "odometry"}
+        ``interval``: the emission interval ``interval_s[event]`` (events ``event`` to ``event + 1``) is
+        estimated instead of taken as given (its TDOA-S stay in, see
+        ``CalibrationResult.interval_corrections_s``); ``tdoa_events``: TDOA-S ``tdoa_events_s[event, mic]``;
+        ``tdoa_mics``: TDOA-M ``tdoa_mics_s[event, mic]``; ``odometry``: the step ``odometry_m[event]`` (3 axes).
+    event : int
+        Row of the measurement in the problem's array (interval or step index for those kinds).
+    mic : int
+        Column (mic) of a TDOA entry; -1 for the other kinds.
+    residual : float
+        At the final estimate, which does not use the measurement. TDOA: measured minus predicted, seconds;
+        interval: estimated error (true interval = given + error), seconds; odometry: norm of measured minus
+        predicted step, metres.
+    normalised_residual : float
+        The same in units of its noise std: TDOA residual / sigma; interval error / its std (Fisher
+        information of the kept set); odometry: norm of the whitened 3-vector.
+    statistic : float
+        The test statistic that rejected it, robustly scaled sigmas (> ``reject_sigma``).
+    reason : str
+        One sentence: what was wrong and why it was rejected.
+    """
+
+    kind: Literal["interval", "tdoa_events", "tdoa_mics", "odometry"]
+    event: int
+    mic: int
+    residual: float
+    normalised_residual: float
+    statistic: float
+    reason: str
+
+
+@dataclasses.dataclass(frozen=True)
 class CalibrationResult:
     """Outcome of :func:`solve` (immutable; safe to hand over from a worker thread).
 
@@ -232,18 +292,20 @@ class CalibrationResult:
         ``method="baseline"`` drifts are relative to mic 0 (``drifts_ppm[0] = 0``).
     method : {"hybrid", "baseline"}
     verdict : {"converged", "diverged", "suspect_local_minimum", "max_iterations"}
-        ``converged``: step/cost criteria met and residuals plausible (robust normalised residual scale
-        ``residual_scale`` <= ``max_residual_scale`` and no mic with a systematically bad fit);
+        ``converged``: step/cost criteria met and the residuals of the kept measurements plausible (robust
+        normalised residual scale ``residual_scale`` <= ``max_residual_scale``, no mic with a systematically bad
+        fit, odometry consistent); rejected gross errors (``rejected``) do not count against it;
         ``suspect_local_minimum``: numerically converged but residuals implausible;
         ``max_iterations``: iteration budget spent; ``diverged``: non-finite or exploding estimate.
     cost : float
-        Final (robust) cost ``sum rho(r_w)`` of whitened residuals.
+        Final (robust) cost ``sum rho(r_w)`` of the kept whitened residuals.
     chi2_per_dof : float
-        ``sum r_w^2 / (n_residuals - n_params)`` (not robust).
+        ``sum r_w^2 / (n_kept - n_params)`` over the kept measurements (not robust; estimated interval
+        errors count as parameters).
     residual_scale : float
-        ``1.4826 * median |r_w|``: about 1 when the assumed noise levels are right.
+        ``1.4826 * median |r_w|`` of the kept measurements: about 1 when the assumed noise levels are right.
     inlier_fraction : float
-        Share of whitened residuals below 5 * max(1, residual_scale).
+        Share of kept whitened residuals below 5 * max(1, residual_scale).
     n_iterations : int
         LM iterations summed over all starts.
     n_starts_used : int
@@ -252,8 +314,16 @@ class CalibrationResult:
     outliers_tdoa_mics : ndarray, shape (K, N), bool
         TDOA-M rejected as gross mis-detections.
     mic_frame_location_std_m : ndarray, shape (N,) or None
-        Per-mic location std in the mic frame from the Fisher information at the estimate, covariance carried
-        through the Jacobian of the frame change (None unless ``with_covariance``).
+        Per-mic location std in the mic frame from the Fisher information of the kept measurements at the
+        estimate (estimated interval errors as nuisance parameters), covariance carried through the Jacobian
+        of the frame change (None unless ``with_covariance``).
+    rejected : tuple of RejectedMeasurement
+        Every gross error rejected, with its residual and the reason (empty when all measurements fit).
+    outliers_odometry : ndarray, shape (K-1,), bool, or None
+        Odometry steps rejected (None: none).
+    interval_corrections_s : ndarray, shape (K-1,), or None
+        Estimated errors of the emission intervals, seconds: ``interval_s + interval_corrections_s`` is what
+        the TDOA-S fit; non-zero only for rejected intervals (None: none).
     """
 
     scene: Scene
@@ -268,6 +338,9 @@ class CalibrationResult:
     outliers_tdoa_events: np.ndarray
     outliers_tdoa_mics: np.ndarray
     mic_frame_location_std_m: np.ndarray | None = None
+    rejected: tuple[RejectedMeasurement, ...] = ()
+    outliers_odometry: np.ndarray | None = None
+    interval_corrections_s: np.ndarray | None = None
 
     @property
     def mic_positions_m(self) -> np.ndarray:
@@ -284,6 +357,11 @@ class CalibrationResult:
     @property
     def drifts_ppm(self) -> np.ndarray:
         return self.scene.drifts_ppm
+
+    @property
+    def estimated_intervals(self) -> np.ndarray:
+        """ndarray of int: indices ``j`` of the emission intervals estimated instead of given."""
+        return np.array(sorted(m.event for m in self.rejected if m.kind == "interval"), dtype=np.intp)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -420,7 +498,8 @@ def mic_frame_error(estimate: Scene | CalibrationResult, truth: Scene) -> dict[s
 # --------------------------------------------------------------------------------------------------------------
 # Problem layout: parameter vector, gauge, measurement rows, Jacobian pattern
 # --------------------------------------------------------------------------------------------------------------
-# Full parameter vector: [x (3N, row-major), tau (N), delta (N, unitless), s (3K, row-major)].
+# Full parameter vector: [x (3N, row-major), tau (N), delta (N, unitless), s (3K, row-major), e (n_e)], ``e`` the
+# errors of the emission intervals ``free_intervals`` (none unless a gross interval error was detected).
 class _Layout:
     """Index arrays shared by every residual/Jacobian evaluation of one problem and gauge.
 
@@ -429,16 +508,25 @@ class _Layout:
     constant linear part ``L`` (drift, offset and odometry terms). One evaluation computes the (N, K)
     distances and unit vectors once; the Jacobian entries are gathers of them, summed into a dense array
     (small problems) or CSR data with a fixed pattern (large ones).
+
+    ``free_intervals`` (interval indices ``j``): the given ``interval_s[j]`` is taken as grossly wrong and its
+    error ``e_j`` (seconds, true interval = given + ``e_j``) is estimated. It enters TDOA-S row ``j`` of every mic
+    as ``+e_j`` (eq. 5; its product with the drift, ``delta_i e_j`` < 1e-7 s for ``e_j`` < 1 ms, is dropped) and
+    is ignored in TDOA-M (eq. 6: ``(delta_i - delta_0) e_j``, < 1e-8 s). Rows are the same for every
+    ``free_intervals``: a residual mask carries over from one layout to the other.
     """
 
     def __init__(self, problem: HybridTdoaProblem, method: str, gauge: str = "sound",
-                 odometry_gauge_m: np.ndarray | None = None):
+                 odometry_gauge_m: np.ndarray | None = None, free_intervals=()):
         n, k = problem.n_mics, problem.n_events
         self.n, self.k = n, k
         self.c = c = problem.speed_of_sound_m_s
-        self.n_full = 5 * n + 3 * k
-        o_tau, o_del, o_s = 3 * n, 4 * n, 5 * n
-        self.o_tau, self.o_del, self.o_s = o_tau, o_del, o_s
+        self.problem, self.method, self.gauge, self.odometry_gauge_m = problem, method, gauge, odometry_gauge_m
+        self.free_intervals = fi = np.asarray(free_intervals, dtype=np.intp).reshape(-1)
+        self.n_e = n_e = len(fi)
+        self.n_full = 5 * n + 3 * k + n_e
+        o_tau, o_del, o_s, o_e = 3 * n, 4 * n, 5 * n, 5 * n + 3 * k
+        self.o_tau, self.o_del, self.o_s, self.o_e = o_tau, o_del, o_s, o_e
         free = np.ones(self.n_full, dtype=bool)
         free[o_tau] = False  # tau_0 = 0
         if method == "baseline":
@@ -508,11 +596,14 @@ class _Layout:
         # linear part L (n_res, n_full)
         st = np.repeat(steps, 3)
         comp = np.tile(np.arange(3), len(steps))
-        l_row = np.concatenate([rs, rm, rm, rm, rm, ro, ro])
+        e_of = np.full(k - 1, -1, dtype=np.intp)
+        e_of[fi] = np.arange(n_e)
+        rs_e = rs[e_of[jj] >= 0]  # TDOA-S rows of a free interval: + e_j
+        l_row = np.concatenate([rs, rm, rm, rm, rm, ro, ro, rs_e])
         l_col = np.concatenate([o_del + ii, o_tau + im, np.full(nm, o_tau), o_del + im, np.full(nm, o_del),
-                                o_s + 3 * (st + 1) + comp, o_s + 3 * st + comp])
+                                o_s + 3 * (st + 1) + comp, o_s + 3 * st + comp, o_e + e_of[jj[rs_e]]])
         l_val = np.concatenate([self.s_dt, np.ones(nm), -np.ones(nm), self.m_t, -self.m_t, np.ones(no),
-                                -np.ones(no)])
+                                -np.ones(no), np.ones(len(rs_e))])
         self.lin = scipy.sparse.csr_matrix((l_val, (l_row, l_col)), shape=(nr, self.n_full))
         # Jacobian entries: 6 per geometric term (x_m: +coef*u, s_e: -coef*u) + the linear ones
         kk = np.arange(3)
@@ -541,17 +632,33 @@ class _Layout:
         self.res_mic = np.concatenate([self.s_mic, self.m_mic, np.full(no, -1)])
 
     # -- parameter helpers ---------------------------------------------------------------------------------------
-    def pack(self, x, tau, delta, s) -> np.ndarray:
-        return np.concatenate([np.ravel(x), tau, delta, np.ravel(s)]).astype(np.float64)
+    def pack(self, x, tau, delta, s, e=None) -> np.ndarray:
+        e = np.zeros(self.n_e) if e is None else e
+        return np.concatenate([np.ravel(x), tau, delta, np.ravel(s), e]).astype(np.float64)
 
     def unpack(self, p):
         n, k = self.n, self.k
         return (p[:3 * n].reshape(n, 3), p[self.o_tau:self.o_del], p[self.o_del:self.o_s],
-                p[self.o_s:].reshape(k, 3))
+                p[self.o_s:self.o_e].reshape(k, 3))
+
+    def with_free_interval(self, j: int) -> "_Layout":
+        """The same problem with the error of interval ``j`` estimated too (its parameter appended last)."""
+        return _Layout(self.problem, self.method, self.gauge, self.odometry_gauge_m,
+                       np.concatenate([self.free_intervals, [j]]))
+
+    def interval_corrections(self, p: np.ndarray) -> np.ndarray:
+        """ndarray, shape (K-1,): estimated interval errors ``e_j``, seconds (0 where the interval is given)."""
+        out = np.zeros(self.k - 1)
+        out[self.free_intervals] = p[self.o_e:]
+        return out
+
+    def s_target(self, p: np.ndarray) -> np.ndarray:
+        """TDOA-S targets ``y - dt - e_j`` (eq. 5 without its geometric and drift terms), seconds."""
+        return self.s_y - self.interval_corrections(p)[self.s_ev] if self.n_e else self.s_y
 
     def _geometry(self, p: np.ndarray):
         x = p[:3 * self.n].reshape(self.n, 3)
-        s = p[self.o_s:].reshape(self.k, 3)
+        s = p[self.o_s:self.o_e].reshape(self.k, 3)
         diff = x[:, None, :] - s[None, :, :]
         d = np.sqrt(np.einsum("nki,nki->nk", diff, diff))
         return d.ravel(), diff, d
@@ -592,20 +699,34 @@ class _Layout:
 # --------------------------------------------------------------------------------------------------------------
 # Robust losses (scipy.optimize.least_squares conventions, in whitened units)
 # --------------------------------------------------------------------------------------------------------------
-def _loss(r: np.ndarray, loss: str, f: float):
-    """Return ``(cost, weights)``: ``cost = sum rho(r)``, IRLS weights ``rho'(r)/r``."""
+def _rho(r: np.ndarray, loss: str, f: float):
+    """Per-residual ``rho(r)`` and IRLS weights ``rho'(r)/r``."""
     if loss == "linear":
-        return 0.5 * float(r @ r), np.ones_like(r)
-    z = (r / f) ** 2
+        return 0.5 * r * r, np.ones_like(r)
     if loss == "soft_l1":
-        q = np.sqrt(1.0 + z)
-        return float(np.sum(f * f * (q - 1.0))), 1.0 / q
+        q = np.sqrt(1.0 + (r / f) ** 2)
+        return f * f * (q - 1.0), 1.0 / q
     if loss == "huber":
         a = np.abs(r)
         big = a > f
-        rho = np.where(big, f * a - 0.5 * f * f, 0.5 * r * r)
-        return float(rho.sum()), np.where(big, f / np.maximum(a, 1e-300), 1.0)
+        return (np.where(big, f * a - 0.5 * f * f, 0.5 * r * r),
+                np.where(big, f / np.maximum(a, 1e-300), 1.0))
     raise ValueError(f"{loss=} must be 'linear', 'soft_l1' or 'huber'")
+
+
+def _loss(r: np.ndarray, loss: str, f: float):
+    """Return ``(cost, weights)``: ``cost = sum rho(r)``, IRLS weights ``rho'(r)/r``."""
+    rho, w = _rho(r, loss, f)
+    return float(rho.sum()), w
+
+
+def _trimmed_cost(r: np.ndarray, loss: str, f: float, n_trim: int) -> float:
+    """``sum rho(r)`` without the ``n_trim`` largest terms: a few gross mis-detections, whose pull is constant
+    under a robust loss, must not make a run look stalled at an implausible cost."""
+    rho = _rho(r, loss, f)[0]
+    if 0 < n_trim < len(rho):
+        return float(np.sum(np.partition(rho, len(rho) - n_trim)[:len(rho) - n_trim]))
+    return float(rho.sum())
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -633,9 +754,10 @@ def _levenberg_marquardt(lay: _Layout, p0: np.ndarray, *, loss: str, f_scale: fl
                          stall_cost: float = np.inf) -> _Run:
     """Levenberg-Marquardt with More's scaling (running max of ``diag(A)``), Nielsen's damping update, a
     position trust region and IRLS for the robust loss; the loss scale adapts to the robust residual scale at
-    every accepted step. ``mask`` (0/1 per residual) drops rejected measurements. A run whose cost is still
-    above ``stall_cost`` and fell by less than 5 % over the last 10 iterations stops as ``max_iterations``
-    (stalled in a wrong region: a restart is cheaper)."""
+    every accepted step. ``mask`` (0/1 per residual) drops rejected measurements. A run whose cost (without
+    its 5 % largest TDOA terms, which may be gross mis-detections) is still above ``stall_cost`` and fell by
+    less than 5 % over the last 10 iterations stops as ``max_iterations`` (stalled in a wrong region: a
+    restart is cheaper)."""
     p = p0.copy()
     free = lay.free
 
@@ -653,15 +775,17 @@ def _levenberg_marquardt(lay: _Layout, p0: np.ndarray, *, loss: str, f_scale: fl
     lam, nu = 1e-3, 2.0
     a, g = lay.normal_equations(p, weights(w), r)
     d = np.zeros(lay.n_free)
-    pos_cols = np.concatenate([lay.col_of[:3 * lay.n], lay.col_of[lay.o_s:]])
+    pos_cols = np.concatenate([lay.col_of[:3 * lay.n], lay.col_of[lay.o_s:lay.o_e]])
     pos_cols = pos_cols[pos_cols >= 0]
     it = 0
-    history = [cost]
+    n_trim = (lay.n_s + lay.n_m) // 20
+    history = []
     while it < max_iterations:
         it += 1
-        history.append(cost)
-        if it > 20 and cost > stall_cost and history[-11] - cost < 0.05 * cost:
-            return _Run(p, "max_iterations", cost, it)
+        if np.isfinite(stall_cost):
+            history.append(_trimmed_cost(r, loss, f, n_trim))
+            if it > 20 and history[-1] > stall_cost and history[-11] - history[-1] < 0.05 * history[-1]:
+                return _Run(p, "max_iterations", cost, it)
         # More's scaling: the running maximum of diag(A) keeps down-weighted directions damped
         da = a.diagonal()
         d = np.maximum(d, np.maximum(da, 1e-12 * max(da.max(), 1e-300)))
@@ -689,7 +813,7 @@ def _levenberg_marquardt(lay: _Layout, p0: np.ndarray, *, loss: str, f_scale: fl
         if np.isfinite(cost_new) and rho > 0:
             decrease = cost - cost_new
             p, r, cost, w = p_new, r_new, cost_new, w_new
-            if np.max(np.abs(p[:3 * lay.n])) > limit_m or np.max(np.abs(p[lay.o_s:])) > limit_m:
+            if np.max(np.abs(p[:3 * lay.n])) > limit_m or np.max(np.abs(p[lay.o_s:lay.o_e])) > limit_m:
                 return _Run(p, "diverged", cost, it)
             lam *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
             nu = 2.0
@@ -752,6 +876,7 @@ class _MicBatch:
         c = lay.c
         per = []
         s_ok = np.ones(lay.n_s, dtype=bool) if s_rows is None else s_rows
+        s_y = lay.s_target(p)
         for i in self.mics:
             ss = np.nonzero((lay.s_mic == i) & s_ok)[0]
             mm = np.nonzero(lay.m_mic == i)[0] if (use_m and i > 0) else np.zeros(0, dtype=np.intp)
@@ -780,7 +905,7 @@ class _MicBatch:
             self.w[q, sl] = w
             known = np.concatenate([np.zeros(na), -np.sqrt(np.sum((x[0] - s[lay.m_ev[mm]]) ** 2, 1)) / c
                                     - delta[0] * lay.m_t[mm]])
-            self.b0[q, sl] = w * (known - np.concatenate([lay.s_y[ss], lay.m_y[mm]]))
+            self.b0[q, sl] = w * (known - np.concatenate([s_y[ss], lay.m_y[mm]]))
             self.a[q, :na, 0] = lay.s_w * lay.s_dt[ss]
             self.a[q, na:na + nb, 0] = lay.m_w * lay.m_t[mm]
             self.a[q, na:na + nb, 1] = lay.m_w
@@ -960,6 +1085,107 @@ def _place_segment(lay: _Layout, events: np.ndarray, seg: np.ndarray, g: int, pl
     return out
 
 
+def _reference_candidates(lay: _Layout, events: np.ndarray, grid: np.ndarray, ref_grid: np.ndarray, n_best: int,
+                          cap: float = 100.0, min_separation_m: float = 0.0) -> np.ndarray:
+    """Baseline: points of ``ref_grid`` for mic 0 ranked by how well every other mic's TDOA-M can then be
+    fitted from a point of ``grid``, the events fixed. Returns ``ref_grid`` indices, best first, each at least
+    ``min_separation_m`` from the better ones (distinct starts, not neighbours in one basin), and the score of
+    every point.
+
+    With mic 0 at ``h`` and mic ``i`` at ``g``, eq. (6) whitened and projected out of the offset + drift
+    columns ``[1, t_j]`` (``P``) leaves ``|D_g - D_h - u_i|^2`` with ``D = P w |x - s_j| / c`` and
+    ``u_i = P w y_i``. Expanded, the minimum over ``g`` for every ``h`` needs only the cross products
+    ``D_g . D_h`` (shared by the mics with the same TDOA-M rows). Least squares, so a mic's score is capped at
+    ``cap`` sigmas squared per row (a grossly mis-detected chirp spoils one mic, not the ranking).
+    """
+    scale = lay.m_w / lay.c
+    dist_g = np.sqrt(np.sum((events[:, None, :] - grid[None, :, :]) ** 2, -1)) * scale  # (K, G)
+    dist_h = np.sqrt(np.sum((events[:, None, :] - ref_grid[None, :, :]) ** 2, -1)) * scale  # (K, H)
+    total = np.zeros(len(ref_grid))
+    cache: dict[bytes, tuple] = {}
+    for i in range(1, lay.n):
+        sel = np.nonzero(lay.m_mic == i)[0]
+        if len(sel) < 4:
+            continue
+        jm = lay.m_ev[sel]
+        key = jm.tobytes()
+        if key not in cache:
+            q, _ = np.linalg.qr(np.stack([np.ones(len(sel)), lay.m_t[sel]], 1))
+            dg = dist_g[jm] - q @ (q.T @ dist_g[jm])  # P D, (R, G)
+            dh = dist_h[jm] - q @ (q.T @ dist_h[jm])
+            # float32 for the (G, H) part: scores differ by >= 1 (sigma^2) where they matter, out of <~1e5
+            cache[key] = (q, dg, dh, (-2.0 * (dg.T @ dh)).astype(np.float32), np.sum(dg * dg, 0),
+                          np.sum(dh * dh, 0))
+        q, dg, dh, cross, ng, nh = cache[key]
+        y = lay.m_w * lay.m_y[sel]
+        u = y - q @ (q.T @ y)
+        # S(g, h) = |D_g|^2 + |D_h|^2 + |u|^2 - 2 D_g.D_h - 2 D_g.u + 2 D_h.u, minimised over g
+        a = (ng - 2.0 * (u @ dg)).astype(np.float32)
+        best = np.min(cross + a[:, None], axis=0) + nh + u @ u + 2.0 * (u @ dh)
+        total += np.minimum(np.maximum(best, 0.0), cap * len(sel))
+    order = np.argsort(total)
+    if min_separation_m <= 0.0:
+        return order[:n_best], total
+    out: list[int] = []
+    for h in order:
+        if all(np.linalg.norm(ref_grid[h] - ref_grid[o]) >= min_separation_m for o in out):
+            out.append(int(h))
+            if len(out) == n_best:
+                break
+    return np.asarray(out, dtype=np.intp), total
+
+
+def _baseline_start(lay: _Layout, events: np.ndarray, x0: np.ndarray, grid: np.ndarray) -> np.ndarray:
+    """Baseline start with the events and mic 0 at ``x0`` given: every other mic by the global search of its
+    own TDOA-M (position, offset and drift)."""
+    pos = np.repeat(np.asarray(x0, float)[None, :], lay.n, axis=0)
+    tau, delta = np.zeros(lay.n), np.zeros(lay.n)
+    mics = [i for i in range(1, lay.n) if np.sum(lay.m_mic == i) >= 4]
+    if mics:
+        _, xb, thb, _, _ = _best_mic_positions(lay, lay.pack(pos, tau, delta, events), mics, use_m=True,
+                                               grid=grid)
+        pos[mics], delta[mics], tau[mics] = xb, thb[:, 0], thb[:, 1]
+    return lay.pack(pos, tau, delta, events)
+
+
+class _BaselineStarts:
+    """Baseline initialisations, best first: events from the integrated odometry, mic 0 at the ``b``-th of
+    :func:`_reference_candidates`, the other mics by :func:`_baseline_start`. The ranking is computed on first
+    use, each start only when asked for."""
+
+    def __init__(self, lay: _Layout, odo_gauge: np.ndarray, n_grid: int, n_best: int = 1):
+        self.lay, self.n_grid, self.n_best = lay, n_grid, n_best
+        self.events = _integrated_odometry(odo_gauge)
+        self.ref = None
+
+    def get(self, b: int) -> np.ndarray | None:
+        """The ``b``-th start (None when there are fewer candidates)."""
+        if b < 0:
+            return None
+        grid = _grid(self.events, self.n_grid)
+        if self.ref is None:
+            ref_grid = _grid(self.events, max(self.n_grid // 4, 8))
+            self.ref = ref_grid[_reference_candidates(self.lay, self.events, grid, ref_grid, self.n_best,
+                                                      min_separation_m=2.5 * _grid_step_m(ref_grid))[0]]
+        return _baseline_start(self.lay, self.events, self.ref[b], grid) if 0 <= b < len(self.ref) else None
+
+
+def _check_reference(lay: _Layout, p: np.ndarray, n_grid: int) -> np.ndarray | None:
+    """Baseline: mic 0, which every TDOA-M involves, has no subproblem of its own to certify. Rank positions of
+    mic 0 with :func:`_reference_candidates` at the estimated events; if the estimate is not among the best
+    three, scores 20 % worse than the best and is more than half a grid step from it, return a start with mic 0
+    at the best (else None). The score puts the other mics on grid points, hence the tolerances."""
+    x, _, _, events = lay.unpack(p)
+    grid = _grid(events, n_grid)
+    ref_grid = _grid(events, max(n_grid // 4, 8))
+    step = _grid_step_m(ref_grid)
+    top, score = _reference_candidates(lay, events, grid, np.vstack([ref_grid, x[:1]]), 3)
+    if (len(ref_grid) in top or score[-1] <= 1.2 * score[top[0]]
+            or np.linalg.norm(ref_grid[top[0]] - x[0]) <= 0.5 * step):
+        return None
+    return _baseline_start(lay, events, ref_grid[top[0]], grid)
+
+
 def _smart_init(lay: _Layout, odo_gauge: np.ndarray, method: str, rng: np.random.Generator,
                 n_grid: int) -> np.ndarray:
     """Events from the integrated odometry; each mic by a global search on its own TDOA-S (position and
@@ -1002,7 +1228,9 @@ def _smart_init(lay: _Layout, odo_gauge: np.ndarray, method: str, rng: np.random
 
 
 def _certify(lay: _Layout, p: np.ndarray, method: str, grid: np.ndarray, f: float) -> tuple[list, np.ndarray]:
-    """Check that every mic sits at the global optimum of its own subproblem (events, mic 0 fixed).
+    """Check that every mic sits at the global optimum of its own subproblem (events, mic 0 fixed; estimated
+    interval errors applied). Every TDOA counts, rejected ones included (Cauchy-weighted): several rejected
+    entries of one mic are as likely the mic in a wrong basin as mis-detected chirps.
 
     Returns the mics that have a clearly better position elsewhere and a parameter vector with those mics
     moved there (the restart point)."""
@@ -1046,6 +1274,205 @@ def _apply_gauge(lay: _Layout, p: np.ndarray) -> np.ndarray:
     return p
 
 
+# --------------------------------------------------------------------------------------------------------------
+# Gross errors: detection, rejection, re-solve
+# --------------------------------------------------------------------------------------------------------------
+@dataclasses.dataclass(frozen=True)
+class _GrossTests:
+    """Outlier statistics at one estimate, in robustly scaled sigmas (see :func:`_gross_error_tests`)."""
+
+    interval_z: np.ndarray  # (K-1,) NaN where not testable
+    row_t: np.ndarray  # (n_s + n_m,) TDOA rows, NaN where rejected
+    step_t: np.ndarray  # (len(o_step),) odometry steps, NaN where not testable
+
+
+def _gross_error_tests(lay: _Layout, p: np.ndarray, mask: np.ndarray, loss: str,
+                       f_scale: float) -> _GrossTests | None:
+    """Outlier tests at a converged (robust) estimate, linearised, with the robust-loss IRLS weights ``W``.
+
+    With ``J`` the whitened Jacobian, ``A = J^T W J`` and ``h_k = w_k J_k A^-1 J_k^T`` (leverage):
+
+    - TDOA entry ``k``: studentised residual ``|r_k| / sqrt(1 - h_k)``;
+    - odometry step (rows ``R``, steps 0 and 1 excluded: they fix the gauge): ``sqrt(r_R^T (I - H_RR)^-1 r_R)``;
+    - emission interval ``j`` (hybrid): the score test of one more parameter ``e_j`` entering all TDOA-S of
+      row ``j`` with whitened column ``a``: ``|a^T W r| / sqrt(a^T W a - (J^T W a)^T A^-1 (J^T W a))`` (the
+      square root of the chi-square drop when ``e_j`` is freed). The IRLS weights bound what one mis-detected
+      chirp adds to it (soft-L1: ``f_scale`` sigmas), so a single bad TDOA-S does not pass for a bad interval.
+
+    TDOA statistics are divided by the robust TDOA scale ``max(1, 1.4826 median |r|)`` of the kept set, the
+    odometry ones by that of the odometry. Large problems (sparse Jacobian) take ``h = 0``.
+    """
+    r = lay.residuals(p)
+    kept = mask > 0
+    n_t = lay.n_s + lay.n_m
+    rt = r[:n_t][kept[:n_t]]
+    if len(rt) == 0:
+        return None
+    scale = max(1.0, 1.4826 * float(np.median(np.abs(rt))))
+    ro = r[n_t:][kept[n_t:]]
+    scale_o = max(1.0, 1.4826 * float(np.median(np.abs(ro)))) if len(ro) else 1.0
+    f = _adaptive_scale(r[kept], f_scale, loss)
+    w = _rho(r, loss, f)[1] * mask
+    j = lay.jacobian(p)
+    sw = np.sqrt(w)
+    jw = j * sw[:, None] if lay.dense else scipy.sparse.diags(sw) @ j
+    a = jw.T @ jw
+    a = a if lay.dense else a.toarray()
+    try:
+        chol = scipy.linalg.cholesky(a + 1e-12 * np.diag(np.diag(a)), lower=True)
+    except np.linalg.LinAlgError:
+        return None
+    v = scipy.linalg.solve_triangular(chol, jw.T, lower=True) if lay.dense else None  # L^-1 J^T W^1/2
+    h = np.sum(v * v, axis=0) if v is not None else np.zeros(lay.n_res)
+    row_t = np.abs(r[:n_t]) / np.sqrt(np.maximum(1.0 - h[:n_t], 0.05)) / scale
+    row_t[~kept[:n_t]] = np.nan
+    # odometry steps >= 2, three rows each
+    step_t = np.full(len(lay.o_step), np.nan)
+    ok = (lay.o_step >= 2) & kept[n_t::3]
+    if np.any(ok):
+        rows = n_t + 3 * np.nonzero(ok)[0][:, None] + np.arange(3)  # (G, 3)
+        rr = r[rows]
+        if v is not None:
+            vr = v[:, rows]  # (n_free, G, 3)
+            hh = np.einsum("fgi,fgj->gij", vr, vr)
+            ev, u = np.linalg.eigh(np.eye(3)[None] - hh)  # I - H_RR, eigenvalues floored like 1 - h_k
+            t2 = np.sum(np.einsum("gij,gi->gj", u, rr) ** 2 / np.maximum(ev, 0.05), axis=1)
+        else:
+            t2 = np.sum(rr * rr, axis=1)
+        step_t[ok] = np.sqrt(np.maximum(t2, 0.0)) / scale_o
+    # emission intervals (hybrid): score test of e_j
+    interval_z = np.full(lay.k - 1, np.nan)
+    if lay.n_s:
+        rs = np.nonzero(kept[:lay.n_s])[0]
+        cnt = np.bincount(lay.s_ev[rs], minlength=lay.k - 1)
+        cand = np.ones(lay.k - 1, dtype=bool)
+        cand[lay.free_intervals] = False
+        cand &= cnt >= 3
+        if np.any(cand):
+            if lay.dense:
+                e_w = (lay.s_ev[rs][None, :] == np.arange(lay.k - 1)[:, None]) * (w[rs] * lay.s_w)  # (K-1, R)
+                g, score = e_w @ j[rs], e_w @ r[rs]  # J^T W a and a^T W r per interval
+            else:
+                e_w = scipy.sparse.csr_matrix((w[rs] * lay.s_w, (lay.s_ev[rs], rs)), shape=(lay.k - 1, lay.n_res))
+                g, score = (e_w @ j).toarray(), e_w @ r
+            aa = np.bincount(lay.s_ev[rs], weights=w[rs], minlength=lay.k - 1) * lay.s_w ** 2
+            y = scipy.linalg.solve_triangular(chol, g.T, lower=True)
+            info = aa - np.sum(y * y, axis=0)
+            good = cand & (info > 1e-6 * np.maximum(aa, 1e-300))
+            interval_z[good] = np.abs(score[good]) / np.sqrt(info[good]) / scale
+    return _GrossTests(interval_z, row_t, step_t)
+
+
+def _reject_gross_errors(lay: _Layout, run: _Run, *, loss: str, f_scale: float, reject_sigma: float,
+                         max_iterations: int, limit_m: float, max_step_m: float, reject_odometry: bool,
+                         max_rounds: int = 8):
+    """Reject gross errors one kind per round and re-solve on the kept set, until none is left.
+
+    A round frees the interval with the largest score above ``reject_sigma`` (a wrong ``interval_s[j]`` moves
+    all TDOA-S of row ``j`` together; it is estimated, not dropped), else drops the worst TDOA of every mic
+    and the worst odometry step above ``reject_sigma`` (see :func:`_gross_error_tests`), then polishes.
+    Entries stay at
+    most 10 % of the TDOAs, odometry steps and intervals at most a quarter of the steps (more points to a wrong
+    basin, not to bad measurements); a round whose polish does not converge is undone.
+
+    Returns the layout (with the freed intervals), the run, the residual mask (None if nothing was dropped),
+    the test statistic of every rejection ``{("interval", j) | ("row", k) | ("step", g): sigmas}`` and the
+    iterations used.
+    """
+    mask = np.ones(lay.n_res)
+    n_t = lay.n_s + lay.n_m
+    max_rows, max_groups = n_t // 10, max(1, (lay.k - 1) // 4)
+    stats: dict[tuple[str, int], float] = {}
+    n_it = 0
+    for _ in range(max_rounds):
+        tests = _gross_error_tests(lay, run.p, mask, loss, f_scale)
+        if tests is None:
+            break
+        new_lay, p0, new_mask, new_stats = lay, run.p, mask.copy(), {}
+        iz = np.nan_to_num(tests.interval_z, nan=0.0)
+        if iz.size and iz.max() > reject_sigma and lay.n_e < max_groups:
+            jb = int(np.argmax(iz))
+            new_lay = lay.with_free_interval(jb)
+            p0 = np.concatenate([run.p, [0.0]])
+            new_stats[("interval", jb)] = float(iz[jb])
+        else:
+            # the worst TDOA of each mic and the worst odometry step: a gross error also inflates the
+            # residuals it is fitted with (swamping), most of all those of its own mic
+            t = np.nan_to_num(tests.row_t, nan=0.0)
+            rows = []
+            for i in np.unique(lay.res_mic[:n_t][t > reject_sigma]):
+                own = np.nonzero(lay.res_mic[:n_t] == i)[0]
+                rows.append(int(own[np.argmax(t[own])]))
+            st = np.nan_to_num(tests.step_t, nan=0.0)
+            steps = [int(np.argmax(st))] if reject_odometry and st.size and st.max() > reject_sigma else []
+            n_rows = int(np.sum(mask[:n_t] == 0)) + len(rows)
+            n_steps = int(np.sum(mask[n_t::3] == 0)) + len(steps)
+            if (len(rows) == 0 and len(steps) == 0) or n_rows > max_rows or n_steps > max_groups:
+                break
+            new_mask[rows] = 0.0
+            for g in steps:
+                new_mask[n_t + 3 * g:n_t + 3 * g + 3] = 0.0
+            new_stats.update({("row", int(k)): float(tests.row_t[k]) for k in rows})
+            new_stats.update({("step", int(g)): float(tests.step_t[g]) for g in steps})
+        polish = _levenberg_marquardt(new_lay, p0, loss=loss, f_scale=f_scale, max_iterations=max_iterations,
+                                      limit_m=limit_m, max_step_m=max_step_m, mask=new_mask)
+        n_it += polish.n_iterations
+        if polish.status != "converged" or not np.all(np.isfinite(polish.p)):
+            break
+        lay, run, mask = new_lay, polish, new_mask
+        stats.update(new_stats)
+    return lay, run, (None if np.all(mask > 0) else mask), stats, n_it
+
+
+def _rejected_report(lay: _Layout, p: np.ndarray, mask: np.ndarray | None,
+                     stats: dict[tuple[str, int], float], reject_sigma: float) -> tuple["RejectedMeasurement", ...]:
+    """Describe every rejection at the final estimate (which no longer uses the rejected measurements)."""
+    if not stats:
+        return ()
+    r = lay.residuals(p)
+    n_t = lay.n_s + lay.n_m
+    out = []
+    corr = lay.interval_corrections(p)
+    if lay.n_e:
+        cov_e = np.diag(_covariance(lay, p, mask))[lay.o_e:]
+    for (kind, idx), stat in stats.items():
+        if kind == "interval":
+            std = float(np.sqrt(cov_e[list(lay.free_intervals).index(idx)]))
+            keep_s = np.ones(lay.n_s, dtype=bool) if mask is None else mask[:lay.n_s] > 0
+            n_rows = int(np.sum((lay.s_ev == idx) & keep_s))
+            out.append(RejectedMeasurement(
+                kind="interval", event=idx, mic=-1, residual=float(corr[idx]),
+                normalised_residual=float(corr[idx] / std) if std > 0 else float("inf"), statistic=stat,
+                reason=(f"the TDOA-S of {n_rows} mics between events {idx} and {idx + 1} share an offset: "
+                        f"interval_s[{idx}] is off by {corr[idx] * 1e3:+.3f} ms (score test {stat:.1f} sigma "
+                        f"> {reject_sigma:g}); estimated instead of given")))
+        elif kind == "row":
+            meas = -r[idx] / lay.w[idx]  # measured minus predicted, seconds
+            if idx < lay.n_s:
+                kd, ev, mic, what = "tdoa_events", int(lay.s_ev[idx]), int(lay.s_mic[idx]), "TDOA-S"
+                where = f"events {ev} and {ev + 1}"
+            else:
+                q = idx - lay.n_s
+                kd, ev, mic, what = "tdoa_mics", int(lay.m_ev[q]), int(lay.m_mic[q]), "TDOA-M"
+                where = f"event {ev}"
+            out.append(RejectedMeasurement(
+                kind=kd, event=ev, mic=mic, residual=float(meas), normalised_residual=float(-r[idx]),
+                statistic=stat,
+                reason=(f"{what} of mic {mic} at {where} is {meas * 1e3:+.3f} ms from the fit "
+                        f"({stat:.1f} sigma > {reject_sigma:g}): a mis-detected chirp")))
+        else:
+            step = int(lay.o_step[idx])
+            rr = r[n_t + 3 * idx:n_t + 3 * idx + 3]
+            out.append(RejectedMeasurement(
+                kind="odometry", event=step, mic=-1, residual=float(np.linalg.norm(rr / lay.o_w)),
+                normalised_residual=float(np.linalg.norm(rr)), statistic=stat,
+                reason=(f"odometry step {step} (events {step} to {step + 1}) is "
+                        f"{np.linalg.norm(rr / lay.o_w) * 100:.1f} cm from the fit ({stat:.1f} sigma > "
+                        f"{reject_sigma:g})")))
+    order = {"interval": 0, "tdoa_events": 1, "tdoa_mics": 2, "odometry": 3}
+    return tuple(sorted(out, key=lambda m: (order[m.kind], m.event, m.mic)))
+
+
 def _diagnostics(lay: _Layout, p: np.ndarray, mask: np.ndarray | None = None) -> dict:
     r = lay.residuals(p)
     keep = np.ones(len(r), dtype=bool) if mask is None else mask > 0
@@ -1082,7 +1509,7 @@ def solve(problem: HybridTdoaProblem, *, method: Method = "hybrid", init: Scene 
           rng: np.random.Generator | int | None = None, max_iterations: int = 100, n_starts: int = 3,
           loss: Loss = "soft_l1", f_scale: float = 3.0, max_residual_scale: float = 4.0,
           max_odometry_rms: float = 2.0, max_cost_per_dof: float = 2.0, reject_sigma: float | None = 8.0,
-          with_covariance: bool = False, n_grid: int = 700) -> CalibrationResult:
+          with_covariance: bool = False, n_grid: int = 700, reject_odometry: bool = False) -> CalibrationResult:
     """Calibrate mics and events from hybrid TDOA + odometry (eq. 10). Pure function.
 
     Parameters
@@ -1119,14 +1546,20 @@ def solve(problem: HybridTdoaProblem, *, method: Method = "hybrid", init: Scene 
         levels are right) for a ``converged`` verdict at the first minimum found (restart otherwise, accept
         a minimum reached twice).
     reject_sigma : float or None
-        After a start converges, TDOA residuals above ``reject_sigma * max(1, residual_scale)`` sigmas are taken
-        as gross mis-detections, dropped, and the solution polished without them (reported in
-        ``CalibrationResult.outliers_*``), provided they are at most 10 % of the TDOAs (more points to a wrong
-        basin, not to bad detections). None keeps every measurement.
+        Gross-error threshold, robustly scaled sigmas: after a start converges, emission intervals whose score
+        test exceeds it are estimated instead of given, and TDOAs whose studentised residual exceeds it are
+        dropped as mis-detected chirps (at most 10 % of the TDOAs: more points to a wrong basin, not to bad
+        detections), re-solving on the kept set until none is left (see the module docstring). Reported in
+        ``CalibrationResult.rejected`` (with residuals and reasons), ``outliers_*`` and
+        ``interval_corrections_s``. None keeps every measurement as given.
     with_covariance : bool
         Also compute per-mic mic-frame location std from the Fisher information at the estimate.
     n_grid : int
         Number of points of the per-mic search grid (initialisation and local-minimum check).
+    reject_odometry : bool
+        Also test odometry steps (from step 2 on: steps 0 and 1 fix the gauge) and drop those above
+        ``reject_sigma``. Off by default: a single step can be all that tells the scene from a mirrored or
+        collapsed one.
 
     Returns
     -------
@@ -1140,6 +1573,8 @@ def solve(problem: HybridTdoaProblem, *, method: Method = "hybrid", init: Scene 
         raise ValueError(f"{max_iterations=} and {n_starts=} must be >= 1")
     if not (f_scale > 0 and max_residual_scale > 0):
         raise ValueError(f"{f_scale=} and {max_residual_scale=} must be > 0 (sigmas)")
+    if reject_sigma is not None and not reject_sigma > 0:
+        raise ValueError(f"{reject_sigma=} must be > 0 (sigmas) or None")
     rng = np.random.default_rng(rng)
     rot = _odometry_gauge(problem)  # odometry frame -> gauge frame
     odo_gauge = problem.odometry_m @ rot.T
@@ -1147,9 +1582,12 @@ def solve(problem: HybridTdoaProblem, *, method: Method = "hybrid", init: Scene 
     events_odo = _integrated_odometry(odo_gauge)
     scale_m = max(1.0, float(np.max(np.ptp(events_odo, axis=0))))
 
+    baseline_starts = _BaselineStarts(lay, odo_gauge, n_grid)
+
     def start_from(k: int) -> np.ndarray:
         """Start 0: ``init`` if given. Then the built-in initialisation, later ones perturbed (hybrid) or
-        with random mics around the odometry (baseline)."""
+        from the next candidate position of mic 0 (baseline; random mics around the odometry once those are
+        used up)."""
         if k == 0 and init is not None:
             if init.mic_positions_m.shape != (lay.n, 3) or init.event_positions_m.shape != (lay.k, 3):
                 raise ValueError(f"init has {init.mic_positions_m.shape[0]} mics and "
@@ -1159,6 +1597,10 @@ def solve(problem: HybridTdoaProblem, *, method: Method = "hybrid", init: Scene 
                 raise ValueError("init must be finite (metres, seconds, ppm)")
             return _apply_gauge(lay, lay.pack(init.mic_positions_m @ rot.T, init.offsets_s,
                                               init.drifts_ppm * _PPM, init.event_positions_m @ rot.T))
+        if method == "baseline":
+            p = baseline_starts.get(k - (0 if init is None else 2))
+            if p is not None:
+                return _apply_gauge(lay, p)
         p = _smart_init(lay, odo_gauge, method, rng, n_grid)
         n_smart = 1 if init is None else 2
         if method == "hybrid" and k >= n_smart:
@@ -1170,38 +1612,57 @@ def solve(problem: HybridTdoaProblem, *, method: Method = "hybrid", init: Scene 
     total_it = 0
     starts = 0
     certified_costs: list[float] = []  # certified but implausible minima; reached twice = confirmed
+    corrected_minima: list[np.ndarray] = []  # plausible only with interval errors estimated; twice = confirmed
+    builtin = 0 if init is None else 1  # the start from the built-in initialisation, unperturbed
     p0 = start_from(0)
+    from_builtin = builtin == 0
     for k in range(int(n_starts)):
         run = _levenberg_marquardt(lay, p0, loss=loss, f_scale=f_scale, max_iterations=int(max_iterations),
                                    limit_m=10.0 * scale_m + 10.0, max_step_m=scale_m, stall_cost=stall_cost)
         starts += 1
         total_it += run.n_iterations
         finite = bool(np.all(np.isfinite(run.p)))
-        mask = None
+        alt = _check_reference(lay, run.p, n_grid) if (run.status == "converged" and finite
+                                                       and method == "baseline") else None
+        if alt is not None:  # a second opinion from mic 0's best candidate position; the lower cost wins
+            other = _levenberg_marquardt(lay, _apply_gauge(lay, alt), loss=loss, f_scale=f_scale,
+                                         max_iterations=int(max_iterations), limit_m=10.0 * scale_m + 10.0,
+                                         max_step_m=scale_m, stall_cost=stall_cost)
+            total_it += other.n_iterations
+            better = _loss(lay.residuals(other.p), loss, f_scale)[0] < _loss(lay.residuals(run.p), loss, f_scale)[0]
+            if other.status == "converged" and np.all(np.isfinite(other.p)) and better:
+                run = other
+        lay_k, mask, stats = lay, None, {}
         if run.status == "converged" and finite and reject_sigma is not None:
-            # gross mis-detections: drop them and polish (the robust loss alone keeps a constant pull)
-            r = lay.residuals(run.p)
-            m = (np.abs(r) <= reject_sigma * max(1.0, 1.4826 * float(np.median(np.abs(r))))).astype(float)
-            m[lay.n_s + lay.n_m:] = 1.0  # only chirp detections can be gross; odometry stays
-            if 0.9 <= m[:lay.n_s + lay.n_m].mean() < 1.0:
-                polish = _levenberg_marquardt(lay, run.p, loss=loss, f_scale=f_scale,
-                                              max_iterations=int(max_iterations), limit_m=10.0 * scale_m + 10.0,
-                                              max_step_m=scale_m, mask=m)
-                total_it += polish.n_iterations
-                if polish.status == "converged":
-                    run, mask = polish, m
-        diag = _diagnostics(lay, run.p, mask) if finite else None
-        cost_cmp = _loss(lay.residuals(run.p), loss, f_scale)[0] if finite else np.inf
+            # gross errors: reject them and re-solve on the kept set (a robust loss alone keeps a constant
+            # pull, and a wrong emission interval is absorbed by the events and odometry, not down-weighted)
+            lay_k, run, mask, stats, n_it = _reject_gross_errors(
+                lay, run, loss=loss, f_scale=f_scale, reject_sigma=float(reject_sigma),
+                max_iterations=int(max_iterations), limit_m=10.0 * scale_m + 10.0, max_step_m=scale_m,
+                reject_odometry=reject_odometry)
+            total_it += n_it
+        diag = _diagnostics(lay_k, run.p, mask) if finite else None
+        r_all = lay_k.residuals(run.p) if finite else None
+        cost_cmp = _loss(r_all, loss, f_scale)[0] if finite else np.inf
         next_p0 = None
         if run.status == "converged" and finite:
-            f_now = _adaptive_scale(lay.residuals(run.p), f_scale, loss)
-            events = lay.unpack(run.p)[3]
-            moved, q = _certify(lay, run.p, method, _grid(events, n_grid), f_now)
+            f_now = _adaptive_scale(r_all if mask is None else r_all[mask > 0], f_scale, loss)
+            events = lay_k.unpack(run.p)[3]
+            moved, q = _certify(lay_k, run.p, method, _grid(events, n_grid), f_now)
             if moved:
                 verdict = "suspect_local_minimum"
-                next_p0 = _apply_gauge(lay, q)
+                next_p0 = _apply_gauge(lay, q[:lay.n_full])
             elif _plausible(diag, max_residual_scale, max_odometry_rms, max_cost_per_dof):
                 verdict = "converged"
+                if lay_k.n_e and not (from_builtin and method == "hybrid"):
+                    # an estimated interval error also absorbs the misfit of a wrong basin (e.g. events
+                    # collapsed onto one plane): accept it from the built-in initialisation (mics from their
+                    # own TDOA-S) or once a second start reaches the same mics (within 5 % of the scene
+                    # size: the starts may differ in a rejected TDOA or two)
+                    x_now = lay_k.unpack(run.p)[0]
+                    if not any(np.max(np.abs(x_now - x0)) <= 0.05 * scale_m for x0 in corrected_minima):
+                        verdict = "suspect_local_minimum"
+                        corrected_minima.append(x_now)
             elif any(abs(cost_cmp - c0) <= 1e-6 * max(cost_cmp, 1.0) for c0 in certified_costs):
                 verdict = "converged"  # the same certified minimum from two different starts
             else:
@@ -1210,35 +1671,48 @@ def solve(problem: HybridTdoaProblem, *, method: Method = "hybrid", init: Scene 
         else:
             verdict = run.status
         rank = {"converged": 0, "suspect_local_minimum": 1, "max_iterations": 2, "diverged": 3}[verdict]
-        cand = (rank, cost_cmp if np.isfinite(cost_cmp) else np.inf, run, verdict, diag, mask)
+        cand = (rank, cost_cmp if np.isfinite(cost_cmp) else np.inf, run, verdict, diag, mask, lay_k, stats)
         if best is None or cand[:2] < best[:2]:
             best = cand
-        logger.debug("start %d: %s cost=%.4g it=%d", k, verdict, run.cost, run.n_iterations)
+        logger.debug("start %d: %s cost=%.4g it=%d rejected=%d", k, verdict, run.cost, run.n_iterations,
+                     len(stats))
         if verdict == "converged":
             break
         p0 = next_p0 if next_p0 is not None else start_from(k + 1)
-    _, _, run, verdict, diag, mask = best
+        from_builtin = next_p0 is None and k + 1 == builtin
+    _, _, run, verdict, diag, mask, lay_k, stats = best
     if diag is None:
         diag = {"chi2_per_dof": np.inf, "residual_scale": np.inf, "inlier_fraction": 0.0}
-    x, tau, delta, s = lay.unpack(run.p)
+    x, tau, delta, s = lay_k.unpack(run.p)
     scene = Scene(mic_positions_m=x @ rot, event_positions_m=s @ rot, offsets_s=tau - tau[0], drifts_ppm=delta / _PPM)
     std = None
     if with_covariance and verdict != "diverged":
-        std = _mic_frame_std(lay, run.p, mask)
+        std = _mic_frame_std(lay_k, run.p, mask)
     out_s = np.zeros((lay.k - 1, lay.n), dtype=bool)
     out_m = np.zeros((lay.k, lay.n), dtype=bool)
+    out_o = None
     if mask is not None:
         rej = mask == 0
         out_s[lay.s_ev[rej[:lay.n_s]], lay.s_mic[rej[:lay.n_s]]] = True
         rm = rej[lay.n_s:lay.n_s + lay.n_m]
         out_m[lay.m_ev[rm], lay.m_mic[rm]] = True
+        ro = rej[lay.n_s + lay.n_m::3]
+        if np.any(ro):
+            out_o = np.zeros(lay.k - 1, dtype=bool)
+            out_o[lay.o_step[ro]] = True
+            out_o.setflags(write=False)
     out_s.setflags(write=False)
     out_m.setflags(write=False)
+    finite = bool(np.all(np.isfinite(run.p)))
+    rejected = _rejected_report(lay_k, run.p, mask, stats, float(reject_sigma)) if finite and stats else ()
     return CalibrationResult(scene=scene, method=method, verdict=verdict, cost=float(run.cost),
                              chi2_per_dof=float(diag["chi2_per_dof"]), residual_scale=float(diag["residual_scale"]),
                              inlier_fraction=float(diag["inlier_fraction"]), n_iterations=int(total_it),
                              n_starts_used=starts, outliers_tdoa_events=out_s, outliers_tdoa_mics=out_m,
-                             mic_frame_location_std_m=None if std is None else _readonly(std))
+                             mic_frame_location_std_m=None if std is None else _readonly(std),
+                             rejected=rejected, outliers_odometry=out_o,
+                             interval_corrections_s=_readonly(lay_k.interval_corrections(run.p)) if lay_k.n_e
+                             else None)
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -1305,18 +1779,26 @@ def _sound_frame_truth(truth: Scene) -> Scene:
     return Scene((truth.mic_positions_m - s[0]) @ r.T, (s - s[0]) @ r.T, truth.offsets_s, truth.drifts_ppm)
 
 
-def crlb(problem: HybridTdoaProblem, truth: Scene, *, method: Method = "hybrid") -> CrlbResult:
+def crlb(problem: HybridTdoaProblem, truth: Scene, *, method: Method = "hybrid",
+         unknown_intervals: Sequence[int] = ()) -> CrlbResult:
     """Cramer-Rao bound ``C = (J^T W^-1 J)^-1`` (eqs. 11-13) at the true scene, scored in the mic frame.
 
     Only the structure of ``problem`` is used (which measurements exist, intervals, noise levels, speed of
     sound), not the measured values. Reports both the full-Jacobian frame change and the authors' variant
     (see :class:`CrlbResult`).
+
+    For the kept measurements of a solve pass ``without_rejected(problem, result)`` and
+    ``unknown_intervals=result.estimated_intervals``: the intervals the solver estimated (hybrid) are then
+    nuisance parameters, not known values.
     """
     n = problem.n_mics
     if truth.mic_positions_m.shape != (n, 3) or truth.event_positions_m.shape != (problem.n_events, 3):
         raise ValueError("truth shapes do not match the problem")
+    unknown = np.asarray(unknown_intervals, dtype=np.intp).reshape(-1) if method == "hybrid" else ()
+    if len(unknown) and (np.min(unknown) < 0 or np.max(unknown) >= problem.n_events - 1):
+        raise ValueError(f"{unknown_intervals=} must be interval indices in 0..{problem.n_events - 2}")
     t = _sound_frame_truth(truth)
-    lay = _Layout(problem, method, "sound")
+    lay = _Layout(problem, method, "sound", free_intervals=unknown)
     p = lay.pack(t.mic_positions_m, t.offsets_s - t.offsets_s[0],
                  t.drifts_ppm * _PPM - (t.drifts_ppm[0] * _PPM if method == "baseline" else 0.0),
                  t.event_positions_m)
@@ -1338,6 +1820,26 @@ def crlb(problem: HybridTdoaProblem, truth: Scene, *, method: Method = "hybrid")
                       location_std_m_authors=authors[0], offset_std_s_authors=authors[1],
                       drift_std_ppm_authors=authors[2], per_mic_location_std_m=_readonly(per_mic),
                       mic_frame_covariance=_readonly(cm))
+
+
+def without_rejected(problem: HybridTdoaProblem, result: CalibrationResult) -> HybridTdoaProblem:
+    """The problem as the solver kept it: rejected TDOAs and odometry steps NaN (missing), rejected emission
+    intervals replaced by their estimates (``interval_s + interval_corrections_s``).
+
+    Use it for noise estimates (:func:`estimate_noise_levels`) and bounds (:func:`crlb`, with
+    ``unknown_intervals=result.estimated_intervals``) of the kept set.
+    """
+    te = problem.tdoa_events_s
+    if te is not None:
+        te = np.where(result.outliers_tdoa_events, np.nan, te)
+    tm = np.where(result.outliers_tdoa_mics, np.nan, problem.tdoa_mics_s)
+    odo = problem.odometry_m
+    if result.outliers_odometry is not None:
+        odo = np.where(result.outliers_odometry[:, None], np.nan, odo)
+    iv = problem.interval_s
+    if result.interval_corrections_s is not None:
+        iv = iv + result.interval_corrections_s
+    return dataclasses.replace(problem, tdoa_events_s=te, tdoa_mics_s=tm, odometry_m=odo, interval_s=iv)
 
 
 # --------------------------------------------------------------------------------------------------------------

@@ -307,7 +307,7 @@ def solve_geometry(problem: estimators.HybridTdoaProblem, *, method: Method = "h
         # plausibility tests follow sigma): re-solve from the estimate with the noise re-estimated (Appendix B)
         if res.verdict != "converged":
             break
-        noise = estimators.estimate_noise_levels(_without_outliers(problem, res), res.scene)
+        noise = estimators.estimate_noise_levels(estimators.without_rejected(problem, res), res.scene)
         s_ev = noise.tdoa_events_std_s if method == "hybrid" else noise.tdoa_mics_std_s
         s_mi = noise.tdoa_mics_std_s
         if not (np.isfinite(s_ev) and np.isfinite(s_mi)) or max(s_ev, s_mi) > 0.5 * problem.sigma_events_s:
@@ -328,10 +328,10 @@ def solve_geometry(problem: estimators.HybridTdoaProblem, *, method: Method = "h
     sigma = problem.sigma_events_s
     if res.verdict != "diverged" and np.all(np.isfinite(res.mic_positions_m)):
         try:
-            clean = _without_outliers(problem, res)
+            clean = estimators.without_rejected(problem, res)
             s_ev, s_mi, sigma = _noise_for_bounds(clean, res.scene, method, prior_s=prior_sigma_s)
             p = dataclasses.replace(clean, sigma_tdoa_s=s_ev, sigma_tdoa_mics_s=s_mi)
-            cr = estimators.crlb(p, res.scene, method=method)
+            cr = estimators.crlb(p, res.scene, method=method, unknown_intervals=res.estimated_intervals)
             v = np.diag(cr.mic_frame_covariance)
             std_pos = np.asarray(cr.per_mic_location_std_m, float)
             std_off = np.sqrt(np.maximum(v[3 * n:4 * n], 0.0))
@@ -353,17 +353,8 @@ def solve_geometry(problem: estimators.HybridTdoaProblem, *, method: Method = "h
         n_events=problem.n_events, solved_at_time_s=solved_at_time_s, epoch_clock_s=epoch, method=method,
         emitter_drift_ppm=float(res.drifts_ppm[0]) if method == "hybrid" else float("nan"),
         event_positions_m=res.event_positions_m, odometry_path_m=path, residual_scale=res.residual_scale,
-        sigma_tdoa_s=sigma, solve_time_s=solve_s, first_event=first_event, device_names=tuple(device_names))
-
-
-def _without_outliers(problem: estimators.HybridTdoaProblem,
-                      res: estimators.CalibrationResult) -> estimators.HybridTdoaProblem:
-    """The problem without the TDOAs the solver rejected as gross mis-detections (NaN), for noise estimates."""
-    te = problem.tdoa_events_s
-    if te is not None and res.outliers_tdoa_events.shape == te.shape:
-        te = np.where(res.outliers_tdoa_events, np.nan, te)
-    tm = np.where(res.outliers_tdoa_mics, np.nan, problem.tdoa_mics_s)
-    return dataclasses.replace(problem, tdoa_events_s=te, tdoa_mics_s=tm)
+        sigma_tdoa_s=sigma, solve_time_s=solve_s, first_event=first_event, device_names=tuple(device_names),
+        rejected=tuple(r.reason for r in getattr(res, "rejected", ())))
 
 
 def _noise_for_bounds(problem: estimators.HybridTdoaProblem, scene: estimators.Scene, method: str, *,
@@ -1033,7 +1024,7 @@ def run_calibrate(out_dir: str | Path, *, measurements: str | Path | None = None
         except Exception as err:  # noqa: BLE001 - the JSON is the product; a plot failure is one sentence
             log.warning("The geometry plot could not be drawn (%s: %s); geometry.json is written.",
                         type(err).__name__, err)
-    summary["outputs"] = sorted(p.name for p in out.iterdir()) + ["calibration.json"]
+    summary["outputs"] = sorted({p.name for p in out.iterdir()} | {"calibration.json"})
     from .sinks import write_json
     write_json(out / "calibration.json", {**summary, "geometry": geometry.to_dict()})
     return {**summary, "geometry": geometry}

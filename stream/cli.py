@@ -380,6 +380,10 @@ def calibration_summary(result: dict[str, Any], out: Path) -> str:
     if "location_error_m" in result:
         lines.append(f"  against the file's ground truth (mic frame): location RMS "
                      f"{result['location_error_m']['rms']:.3f} m")
+    for reason in g.rejected[:6]:
+        lines.append(f"  rejected: {reason}")
+    if len(g.rejected) > 6:
+        lines.append(f"  rejected: ... {len(g.rejected) - 6} more in geometry.json")
     if not g.converged:
         lines.append(f"  ! the solver's verdict is '{g.verdict}': do not use this geometry")
     lines.append(f"  wrote: {', '.join(result['outputs'])}")

@@ -88,6 +88,8 @@ class Geometry:
     first_event : int
         Index of the first event of the solve in the session (0 unless old events were dropped).
     device_names : tuple of str
+    rejected : tuple of str
+        The measurements the solver rejected as gross errors, one sentence each (what, by how much, why).
     """
 
     positions_m: np.ndarray
@@ -109,6 +111,7 @@ class Geometry:
     solve_time_s: float = float("nan")
     first_event: int = 0
     device_names: tuple[str, ...] = ()
+    rejected: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         for name in _ARRAYS:
@@ -206,7 +209,7 @@ class Geometry:
                 value = float("nan") if value is None else float(value)
             elif key in ("n_events", "first_event"):
                 value = int(value)
-            elif key == "device_names":
+            elif key in ("device_names", "rejected"):
                 value = tuple(value)
             kw[key] = value
         return cls(**kw)

@@ -86,6 +86,96 @@ def test_robust_loss_survives_gross_outlier():
     assert ht.mic_frame_error(plain, truth)["location_m"] > 2 * ht.mic_frame_error(robust, truth)["location_m"]
 
 
+def corrupt(problem: ht.HybridTdoaProblem, *, interval: int, entries_s, tdoa_m=None) -> ht.HybridTdoaProblem:
+    """Gross errors: ``interval_s[interval]`` given 1 ms short of the truth (the TDOA-S were measured with the
+    true one), TDOA-S ``entries_s`` ((row, mic), ...) 2 ms late, optionally TDOA-M ``tdoa_m`` (row, mic) 0.5 s off
+    (a chirp missed by a device)."""
+    iv = problem.interval_s.copy()
+    iv[interval] -= 1e-3
+    s = problem.tdoa_events_s.copy()
+    for j, i in entries_s:
+        s[j, i] += 2e-3
+    m = problem.tdoa_mics_s.copy()
+    if tdoa_m is not None:
+        m[tdoa_m] -= 0.5
+    return dataclasses.replace(problem, interval_s=iv, tdoa_events_s=s, tdoa_mics_s=m)
+
+
+def test_gross_errors_are_rejected_named_and_harmless():
+    rng = np.random.default_rng(13)
+    events = np.concatenate([CUBE, CUBE[::-1] + [0.5, 0.5, 0.3]])
+    truth = make_truth(rng, n_mics=6, events=events)
+    problem = make_problem(truth, rng)
+    bad_s = [(2, 1), (9, 4), (11, 0)]
+    bad = corrupt(problem, interval=5, entries_s=bad_s, tdoa_m=(7, 3))
+    clean = ht.solve(problem, rng=0)
+    res = ht.solve(bad, rng=0, with_covariance=True)
+    plain = ht.solve(bad, rng=0, reject_sigma=None)
+    assert res.verdict == "converged" and res.chi2_per_dof < 2.0
+    named = {(m.kind, m.event, m.mic) for m in res.rejected}
+    assert named == {("interval", 5, -1), ("tdoa_mics", 7, 3)} | {("tdoa_events", j, i) for j, i in bad_s}
+    for m in res.rejected:
+        assert m.statistic > 8.0 and m.reason
+        if m.kind == "interval":
+            assert m.residual == pytest.approx(1e-3, abs=1e-4)  # seconds: given + correction = truth
+            assert res.interval_corrections_s[5] == m.residual and m.normalised_residual > 8.0
+        elif m.kind == "tdoa_events":
+            assert m.residual == pytest.approx(2e-3, abs=5e-4) and m.normalised_residual > 15.0
+        else:
+            assert m.residual == pytest.approx(-0.5, abs=1e-3)
+    assert res.outliers_tdoa_events.sum() == 3 and res.outliers_tdoa_mics[7, 3] and res.outliers_odometry is None
+    np.testing.assert_array_equal(res.estimated_intervals, [5])
+    err = ht.mic_frame_error(res, truth)["location_m"]
+    assert err < 1.2 * ht.mic_frame_error(clean, truth)["location_m"] + 0.005  # metres
+    assert plain.verdict != "converged" or plain.chi2_per_dof > 5.0  # without rejection: no honest fit
+    # the Fisher information of the kept set, interval 5 a nuisance parameter, is what crlb() gives for it
+    kept = ht.without_rejected(bad, res)
+    assert np.isnan(kept.tdoa_events_s[2, 1]) and kept.interval_s[5] == pytest.approx(problem.interval_s[5], abs=1e-4)
+    bound = ht.crlb(kept, res.scene, unknown_intervals=res.estimated_intervals)
+    np.testing.assert_allclose(res.mic_frame_location_std_m, bound.per_mic_location_std_m, rtol=1e-3, atol=1e-9)
+    assert bound.location_std_m > ht.crlb(kept, res.scene).location_std_m  # an unknown interval costs precision
+
+
+def test_clean_problems_reject_nothing():
+    rng = np.random.default_rng(14)
+    for n_mics in (4, 8):
+        truth = make_truth(rng, n_mics=n_mics)
+        for method in ("hybrid", "baseline"):
+            res = ht.solve(make_problem(truth, rng), method=method, rng=0)
+            assert res.verdict == "converged"
+            assert res.rejected == () and res.interval_corrections_s is None
+            assert not res.outliers_tdoa_events.any() and not res.outliers_tdoa_mics.any()
+
+
+def test_baseline_rejects_a_missed_chirp():
+    rng = np.random.default_rng(15)
+    truth = make_truth(rng, n_mics=6)
+    problem = make_problem(truth, rng)
+    m = problem.tdoa_mics_s.copy()
+    m[0, 4] -= 0.5  # 0.5 s: the device heard another chirp
+    res = ht.solve(dataclasses.replace(problem, tdoa_mics_s=m), method="baseline", rng=0)
+    assert res.verdict == "converged"
+    assert [(r.kind, r.event, r.mic) for r in res.rejected] == [("tdoa_mics", 0, 4)]
+    clean = ht.solve(problem, method="baseline", rng=0)
+    assert ht.mic_frame_error(res, truth)["location_m"] < 1.2 * ht.mic_frame_error(clean, truth)["location_m"] + 0.005
+
+
+def test_odometry_rejection_is_opt_in():
+    rng = np.random.default_rng(16)
+    events = np.concatenate([CUBE, CUBE[::-1] + [0.5, 0.5, 0.3]])
+    truth = make_truth(rng, n_mics=6, events=events)
+    problem = make_problem(truth, rng)
+    odo = problem.odometry_m.copy()
+    odo[6] += [0.3, -0.2, 0.0]  # wheel slip, 36 cm (36 sigma)
+    slipped = dataclasses.replace(problem, odometry_m=odo)
+    res = ht.solve(slipped, rng=0, reject_odometry=True)
+    assert [(r.kind, r.event) for r in res.rejected] == [("odometry", 6)]
+    assert res.verdict == "converged" and res.outliers_odometry[6] and res.rejected[0].residual > 0.3
+    kept = ht.without_rejected(slipped, res)
+    assert np.all(np.isnan(kept.odometry_m[6])) and np.all(np.isfinite(np.delete(kept.odometry_m, 6, 0)))
+    assert all(r.kind != "odometry" for r in ht.solve(slipped, rng=0).rejected)
+
+
 def test_missing_measurements_are_tolerated():
     rng = np.random.default_rng(5)
     truth = make_truth(rng, n_mics=7)
@@ -201,5 +291,9 @@ def test_bad_arguments_raise():
         ht.solve(problem, method="tdoa")
     with pytest.raises(ValueError, match="hybrid"):
         ht.solve(dataclasses.replace(problem, tdoa_events_s=None))
+    with pytest.raises(ValueError, match="reject_sigma"):
+        ht.solve(problem, reject_sigma=0.0)
+    with pytest.raises(ValueError, match="unknown_intervals"):
+        ht.crlb(problem, truth, unknown_intervals=[7])
     assert ht.solve(dataclasses.replace(problem, tdoa_events_s=None), method="baseline", init=truth).verdict \
         == "converged"
