@@ -167,10 +167,13 @@ def test_a_late_aggregator_and_a_device_killed_and_restarted(procs, tmp_path):
     assert rep["status"] == "ok"
     devices = rep["network"]["devices"]
     d0, d2 = devices["phone0"], devices["phone2"]
-    # joined late: the devices' first frames were never seen; the first ones received start the clocks, within
-    # a few frames of each other (no loss is reported for that lead)
+    # joined late: the devices' first frames were never seen; the first ones received start the clocks, each
+    # placed where the others were when it was first heard (a peer may connect up to a second later: its first
+    # frame is then that much later audio); no loss is reported for that lead, and the aligner finds phone1 where
+    # replay finds it (+0.118 s, within the placement's jitter of a frame or two)
     assert min(d["start_sample"] for d in devices.values()) == 0
-    assert max(d["start_sample"] for d in devices.values()) <= 0.5 * RATE
+    assert not any("shares no clear sound" in m for m in rep["messages"]), rep["messages"]
+    assert abs(rep["stream"]["coarse_offsets_s"][1] - 0.118) < 0.15, rep["stream"]["coarse_offsets_s"]
     assert 40 <= d0["n_frames"] <= 110 and d0["n_lost_frames"] == 0, d0
     assert d2["n_restarts"] == 1 and d2["n_departures"] == 1, d2
     assert d2["n_concealed_samples"] >= 0.5 * RATE, d2            # the ~1 s outage, as flagged zeros
