@@ -48,6 +48,7 @@ from .stopping import install_stop_handlers as _install_stop_handlers
 log = logging.getLogger(__name__)
 
 PREFIX = "adhoc"
+CHORES_S = 0.02          # how often the aggregator checks presence, conceals silent devices and the end
 DEFAULT_PORT = 7447
 
 
@@ -498,6 +499,7 @@ class NetSource:
         self._overrun: dict[str, int] = {}
         self._latencies: dict[str, _Reservoir] = {}
         self._present: dict[str, bool] = {}
+        self._presence_changed = True
         self._malformed: dict[str, int] = {}
         self._malformed_said: set[str] = set()
         self._strangers: set[str] = set()
@@ -559,6 +561,7 @@ class NetSource:
         name = Keys.device_of(str(sample.key_expr))
         with self._lock:
             self._present[name] = sample.kind == zenoh.SampleKind.PUT
+            self._presence_changed = True
         self._wake.set()
 
     def _on_audio(self, sample) -> None:
@@ -658,17 +661,18 @@ class NetSource:
     def __iter__(self) -> Iterator[Frame]:
         self.t_start_s = time.monotonic()
         index = {d.name: k for k, d in enumerate(self.active)}
-        t_origin: float | None = None
+        next_chores = 0.0            # presence, concealment and the end are checked every CHORES_S
         while True:
             if self._stop:
                 break
             now = time.monotonic()
             with self._lock:
                 inbox = {n: list(q) for n, q in self._inbox.items() if q}
-                for n, q in self._inbox.items():
-                    q.clear()
+                for n in inbox:
+                    self._inbox[n].clear()
                     self._inbox_samples[n] = 0
-                present = dict(self._present)
+                present = dict(self._present) if self._presence_changed or now >= next_chores else None
+                self._presence_changed = False
             for name, items in inbox.items():
                 k = index.get(name)
                 if k is None:
@@ -683,7 +687,7 @@ class NetSource:
                     lane.buffer.push(frame, arrival)
                     lane.last_arrival_s = arrival
                     lane.said_last |= bool(frame.flags & FrameFlag.LAST)   # before its token's DELETE is read
-            for name, k in index.items():
+            for name, k in (index.items() if present is not None else ()):
                 dev, lane = self.active[k], self._lanes[k]
                 was = dev.present
                 dev.present = present.get(name, False)
@@ -703,10 +707,14 @@ class NetSource:
             # frames released by the jitter buffers, placed on each device's engine-side clock
             progress = max((ln.pos / d.sample_rate_hz for ln, d in zip(self._lanes, self.active)), default=0.0)
             for k, (dev, lane) in enumerate(zip(self.active, self._lanes)):
-                for f in lane.buffer.pop_ready(now):
-                    if t_origin is None:
-                        t_origin = now
-                    yield from self._place(k, dev, lane, f, progress)
+                if len(lane.buffer):
+                    for f in lane.buffer.pop_ready(now):
+                        yield from self._place(k, dev, lane, f, progress)
+            if now < next_chores:
+                self._wake.wait(CHORES_S)
+                self._wake.clear()
+                continue
+            next_chores = now + CHORES_S
             # devices that deliver nothing for hold_s: flagged zeros keep them in step with the others
             progress = max((ln.pos / d.sample_rate_hz for ln, d in zip(self._lanes, self.active)), default=0.0)
             for k, (dev, lane) in enumerate(zip(self.active, self._lanes)):
@@ -724,7 +732,7 @@ class NetSource:
                                                     now - ln.gone_since_s > self.gone_done_s)
                                        for ln in self._lanes):
                 break
-            self._wake.wait(0.01)
+            self._wake.wait(CHORES_S)
             self._wake.clear()
         for k, (dev, lane) in enumerate(zip(self.active, self._lanes)):
             if not lane.ended:
