@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import json
 import os
-import re
 import shutil
 import signal
 import subprocess
@@ -315,44 +314,3 @@ def test_no_sound_card_is_one_sentence(tmp_path):
                        env=env, capture_output=True, text=True, timeout=120)
     assert r.returncode == 2 and "Traceback" not in r.stderr
     assert r.stderr.strip().startswith("adhoc-array: No input sound card is visible to PortAudio")
-
-
-def test_a_sound_card_streams_as_a_network_device(jack, bay, tmp_path):
-    """adhoc-array device --input system:1 (the live-audio source) into an aggregator process, over Zenoh on
-    127.0.0.1; Ctrl-C ends the device cleanly and the aggregator ends with it (--until-done)."""
-    import socket
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        ep = f"tcp/127.0.0.1:{s.getsockname()[1]}"
-    env = dict(os.environ, JACK_DEFAULT_SERVER=jack.name)
-    cli = [sys.executable, "-m", "stream.cli"]
-    agg = subprocess.Popen([*cli, "aggregate", "--out", str(tmp_path / "agg"), "--listen", ep, "--no-scouting",
-                            "--array", "card", "--expect", "card0", "--until-done", "--discover-s", "30",
-                            "--no-plots", "--no-status"], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                           text=True)
-    dev = subprocess.Popen([*cli, "device", "--name", "card0", "--input", "system:1", "--connect", ep,
-                            "--no-scouting", "--array", "card", "--wait-aggregator", "30"], env=env,
-                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    try:
-        rng = np.random.default_rng(8)
-        _feed(bay, (0.1 * rng.standard_normal((30 * RATE, 1))).astype(np.float32), 1)
-        t_end = time.monotonic() + 60
-        while time.monotonic() < t_end and not (tmp_path / "agg").exists():
-            time.sleep(0.1)
-        time.sleep(3.0)
-        dev.send_signal(signal.SIGINT)
-        out, err = dev.communicate(timeout=30)
-        assert dev.returncode == 0 and re.match(r"adhoc-array device card0: sent (\d+) frames", out), (out, err)
-        a_out, a_err = agg.communicate(timeout=60)
-        assert agg.returncode == 0, a_err[-3000:]
-    finally:
-        for p in (dev, agg):
-            if p.poll() is None:
-                p.kill()
-                p.communicate()
-    rep = json.loads((tmp_path / "agg" / "report.json").read_text())
-    sent = int(re.match(r"adhoc-array device card0: sent (\d+) frames", out).group(1))
-    d = rep["network"]["devices"]["card0"]
-    assert rep["status"] == "ok" and d["n_frames"] == sent and d["n_lost_frames"] == 0 and sent > 10, (d, sent)
-    assert rep["devices"][0]["facts"]["input"] == "system:1"
-    assert rep["stream"]["audio_s"] >= 1.0
