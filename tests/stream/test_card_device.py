@@ -12,30 +12,9 @@ import sys
 import time
 
 import numpy as np
-import pytest
 import soundfile as sf
 
-from stream.errors import AudioDeviceError
-
 RATE = 16000
-
-
-@pytest.fixture(scope="module")
-def jack():
-    from stream.jack_dummy import jack_dummy_server
-    try:
-        with jack_dummy_server(sample_rate_hz=RATE, period_samples=128, n_channels=2) as server:
-            yield server
-    except AudioDeviceError as err:
-        pytest.skip(f"no JACK dummy server here: {err}")
-
-
-@pytest.fixture
-def bay(jack):
-    from stream.jack_dummy import PatchBay
-    b = PatchBay(jack, n_outputs=2, n_inputs=1, record_s=5.0)
-    yield b
-    b.close()
 
 
 def test_a_sound_card_streams_as_a_network_device(jack, bay, tmp_path):

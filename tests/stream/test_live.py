@@ -20,30 +20,12 @@ import numpy as np
 import pytest
 import soundfile as sf
 
-from stream.errors import AudioDeviceError, StreamError
+from stream.errors import StreamError
 from stream.fixture import load_fixture
 
 from tests.conftest import REPO_FIXTURES
 
 RATE = 16000
-
-
-@pytest.fixture(scope="module")
-def jack():
-    from stream.jack_dummy import jack_dummy_server
-    try:
-        with jack_dummy_server(sample_rate_hz=RATE, period_samples=128, n_channels=8) as server:
-            yield server
-    except AudioDeviceError as err:
-        pytest.skip(f"no JACK dummy server here: {err}")
-
-
-@pytest.fixture
-def bay(jack):
-    from stream.jack_dummy import PatchBay
-    b = PatchBay(jack, n_outputs=8, n_inputs=1, record_s=30.0)
-    yield b
-    b.close()
 
 
 def _feed(bay, signal_: np.ndarray, n_inputs: int, *, client: str = "PortAudio", output: bool = False) -> threading.Thread:
