@@ -443,8 +443,10 @@ class Aligner:
 
     def _emit(self) -> Iterator[Block]:
         if not self.ready:
-            s0 = self._ref_start if self._ref_start is not None or self._ended[0] else self._received[0] + 1
-            need = [(s0 or 0) + self.window_samples + (int(self.max_offset_s * self.sample_rate_hz) if d else 0)
+            if self._ref_start is None and not self._ended[0]:
+                return                    # the reference has delivered no audio yet (only a network lead)
+            s0 = self._ref_start or 0
+            need = [s0 + self.window_samples + (int(self.max_offset_s * self.sample_rate_hz) if d else 0)
                     for d in range(self.n_devices)]
             have = all(self._ended[d] or self._received[d] >= need[d] for d in range(self.n_devices))
             if not have and not (self._overdue() and self._received[0] >= need[0]):

@@ -151,22 +151,18 @@ def probe_toas(x: np.ndarray, sample_rate_hz: float, segments_s: np.ndarray, mic
     """``toa[m] - toa[reference_mic]`` of every probe, seconds, shape ``(n_probes, n_mics)``: GCC-PHAT of all
     mic pairs over each probe (at most ``max_frame_s`` of it), then least squares over the pairs (the TOA
     paper's pseudo-inverse, eq. 12)."""
-    from estimators import gcc_phat, pairs
+    from estimators import gcc_phat, pair_matrix
     n_mics = x.shape[1]
     aperture_m = float(np.max(np.linalg.norm(mics_m[:, None] - mics_m[None], axis=-1)))
     max_tdoa_s = 1.2 * aperture_m / speed_of_sound_m_s + 2 / sample_rate_hz
-    pr = pairs(n_mics)
-    A = np.zeros((len(pr), n_mics))
-    A[np.arange(len(pr)), pr[:, 0]] = 1.0
-    A[np.arange(len(pr)), pr[:, 1]] = -1.0
-    A = np.delete(A, reference_mic, axis=1)          # toa[reference] = 0
+    A = np.delete(pair_matrix(n_mics), reference_mic, axis=1)          # toa[reference] = 0
     out = np.full((len(segments_s), n_mics), np.nan)
     for s, (a, b) in enumerate(segments_s):
         i0 = int(a * sample_rate_hz)
         i1 = min(len(x), int(min(b, a + max_frame_s) * sample_rate_hz))
-        n = 1 << int(np.floor(np.log2(max(i1 - i0, 16))))
         if i1 - i0 < 16:
             continue
+        n = 1 << int(np.floor(np.log2(i1 - i0)))
         tdoa, conf = gcc_phat(x[i0:i0 + n], sample_rate_hz=sample_rate_hz, max_tdoa_s=max_tdoa_s)
         w = np.sqrt(np.maximum(conf, 1e-3))
         sol = np.linalg.lstsq(A * w[:, None], tdoa * w, rcond=None)[0]

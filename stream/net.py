@@ -292,6 +292,16 @@ def run_device(name: str, source, net: NetOptions, *, array: str = "default", sa
     return counters
 
 
+@dataclass
+class _EventStop:
+    """What a signal stops when the loop is a wait on an event (``listen``, ``router``)."""
+
+    event: threading.Event
+
+    def stop(self) -> None:
+        self.event.set()
+
+
 def _wait_for_token(session, key: str, timeout_s: float) -> bool:
     t_end = time.monotonic() + timeout_s
     while time.monotonic() < t_end:
@@ -442,7 +452,6 @@ class _Lane:
     gone_since_s: float | None = None  # monotonic time its liveliness token went (None: present)
     said_last: bool = False            # its sender ended its stream cleanly (a LAST frame)
     seq: int = 0
-    current: int = -1                  # instance being released
 
 
 class NetSource:
@@ -598,6 +607,7 @@ class NetSource:
     # discovery ----------------------------------------------------------------------------------------------
     def _discover(self) -> None:
         t_end = time.monotonic() + self.discover_s
+        present: list[str] = []
         while not self._stop:
             with self._lock:
                 present = sorted(n for n, p in self._present.items() if p)
@@ -650,7 +660,7 @@ class NetSource:
                     f = json.loads(reply.ok.payload.to_bytes())
                 except ValueError:
                     continue
-                name = Keys.device_of(str(reply.ok.key_expr).replace("/info", "/audio"))
+                name = Keys.device_of(str(reply.ok.key_expr))
                 if name in names:
                     facts[name] = f
         except Exception as err:  # noqa: BLE001 - the facts also come with the frames
@@ -887,12 +897,7 @@ def listen(key: str, out: str | Path, net: NetOptions, *, max_duration_s: float 
         wake.set()
 
     stop: list[str] = []
-
-    class _Stopper:
-        def stop(self) -> None:
-            wake.set()
-
-    restore = _install_stop_handlers(_Stopper(), stop)
+    restore = _install_stop_handlers(_EventStop(wake), stop)
     summary = {"key": key, "out": str(out), "n_frames": 0, "n_samples": 0, "n_gaps": 0, "n_malformed": 0,
                "n_lines": 0}
     wav = None
@@ -967,12 +972,7 @@ def run_router(net: NetOptions, *, ready: Callable[[list[str]], None] | None = N
                            f"({_zenoh_text(err)}).") from None
     stopped: list[str] = []
     event = threading.Event()
-
-    class _Stopper:
-        def stop(self) -> None:
-            event.set()
-
-    restore = _install_stop_handlers(_Stopper(), stopped)
+    restore = _install_stop_handlers(_EventStop(event), stopped)
     try:
         locators = router_locators(session)
         if ready is not None:
