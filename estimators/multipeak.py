@@ -8,7 +8,10 @@ point noise source and with more than one talker:
 
        Phi_ij <- Phi_ij + a (1 - p) (X_i X_j^* - Phi_ij),    a = 1 - exp(-hop / noise_time_constant)
 
-   and removed from the frame's cross spectrum before the PHAT weighting::
+   (with ``noise_delay_s``, each frame joins the average that long after it was heard and only as far as no
+   speech was detected since: ``p`` is then the largest speech presence from that frame to now, so a talker's
+   first words, heard before the detector fires, stay out of the noise) and removed from the frame's cross
+   spectrum before the PHAT weighting::
 
        G_ij = X_i X_j^* - Phi_ij                       (weighting "subtract")
        G_ij = (X_i X_j^* - Phi_ij) * max(0, 1 - |Phi_ij| / |X_i X_j^*|)   ("subtract-snr")
@@ -109,11 +112,11 @@ def _channel_ok(x, valid):
 
 
 @_jit
-def _pair_spectrum(xi, xj, phi, sm, g, scratch, a, b, mode, update, phi_scale):
+def _pair_spectrum(xi, xj, oi, oj, phi, sm, g, scratch, a, b, mode, update, phi_scale):
     """One pair's weighted cross spectrum into ``g`` (module doc): the short-time average ``sm`` of
     ``X_i X_j^*`` (moved by ``b``; ``b = 1``: this frame only) minus the noise cross power ``phi`` (for
     "phat": this frame's ``X_i X_j^*`` alone), optional per-bin weight, PHAT normalisation; then the noise
-    average moves towards ``X_i X_j^*`` by ``a``. ``phi_scale`` undoes the average's start-up bias (it starts
+    average moves towards the delayed frame's ``O_i O_j^*`` (``oi``, ``oj``) by ``a``. ``phi_scale`` undoes the average's start-up bias (it starts
     at 0). ``scratch`` (>= n_bins floats) holds |G|^2."""
     n_bins = xi.shape[0]
     peak2 = np.float32(0.0)
@@ -127,7 +130,7 @@ def _pair_spectrum(xi, xj, phi, sm, g, scratch, a, b, mode, update, phi_scale):
         peak2 = m2 if m2 > peak2 else peak2
     if update:
         for k in range(n_bins):
-            c = xi[k] * xj[k].conjugate()
+            c = oi[k] * oj[k].conjugate()
             phi[k] += a * (c - phi[k])
     eps = _EPS_REL * np.sqrt(peak2) + _TINY
     eps2 = eps * eps
@@ -148,6 +151,8 @@ def _pair_spectrum(xi, xj, phi, sm, g, scratch, a, b, mode, update, phi_scale):
 @numba.njit(
     numba.int64(numba.types.Array(numba.complex64, 2, "F"),  # spectra (n_bins, M), a C-contiguous transpose
                 numba.types.Array(numba.bool_, 1, "A", readonly=True),
+                numba.complex64[:, ::1],  # the delayed frame that updates the noise average (M, n_bins)
+                numba.bool_[::1],         # its usable channels (M,)
                 numba.complex64[:, ::1],  # noise cross-power spectra (n_pairs, n_bins), state
                 numba.complex64[:, ::1],  # short-time cross-power spectra (n_pairs, n_bins), state
                 numba.complex64[:, ::1],  # cross work (n_pairs, n_bins)
@@ -157,15 +162,18 @@ def _pair_spectrum(xi, xj, phi, sm, g, scratch, a, b, mode, update, phi_scale):
                 numba.bool_[::1]),        # usable channels (M,), output
     cache=True, nogil=True, error_model="numpy",
 )
-def _frame(spectra, valid, noise, smooth, cross, corr, params, peak_tdoa, peak_value, usable):
-    """One frame: noise cross-power update and removal, PHAT, batched irfft, N best peaks per pair."""
+def _frame(spectra, valid, old, old_usable, noise, smooth, cross, corr, params, peak_tdoa, peak_value, usable):
+    """One frame: noise cross-power removal and update (from the delayed frame ``old``), PHAT, batched irfft,
+    N best peaks per pair."""
     n_bins, m = spectra.shape
     if noise.shape[1] != n_bins or noise.shape[0] != m * (m - 1) // 2:
         return _BAD_SPECTRA_SHAPE
     if valid.shape[0] != m:
         return _BAD_VALID_SHAPE
+    if old.shape[0] != m or old.shape[1] != n_bins or old_usable.shape[0] != m:
+        return _BAD_SPECTRA_SHAPE
     spectra, valid, noise, cross = borrowed(spectra), borrowed(valid), borrowed(noise), borrowed(cross)
-    smooth = borrowed(smooth)
+    smooth, old, old_usable = borrowed(smooth), borrowed(old), borrowed(old_usable)
     corr, peak_tdoa, peak_value, usable = borrowed(corr), borrowed(peak_tdoa), borrowed(peak_value), borrowed(usable)
     spec = spectra.T
     max_lag = int(params[_P_MAX_LAG])
@@ -183,7 +191,8 @@ def _frame(spectra, valid, noise, smooth, cross, corr, params, peak_tdoa, peak_v
         for j in range(i + 1, m):
             g = cross[p]
             if usable[i] and usable[j]:
-                _pair_spectrum(xi, spec[j], noise[p], smooth[p], g, corr[p], a, b, mode, update, phi_scale)
+                _pair_spectrum(xi, spec[j], old[i], old[j], noise[p], smooth[p], g, corr[p], a, b, mode,
+                               update and old_usable[i] and old_usable[j], phi_scale)
             else:
                 g[:] = 0.0
             p += 1
@@ -243,11 +252,16 @@ class NoiseAwareGcc:
         Time constant of the short-time average of every pair's cross-power spectrum that the noise is removed
         from (0: each frame alone, the paper's eq. 4). A few frames of the same talker give a much steadier
         peak than one in reverberation and noise; it must stay short against a moving talker and a turn.
+    noise_delay_s : float
+        The noise average takes each frame this long after it was heard, weighted by ``1 - max p`` over the
+        frames since: a talker's onset, heard before the speech detector fires, then never enters it (0: each
+        frame at once, weighted by its own ``p``).
     """
 
     def __init__(self, n_channels: int, *, n_fft: int, sample_rate_hz: float, hop_s: float,
                  max_tdoa_s: float, n_peaks: int = 3, weighting: Weighting = "subtract",
-                 noise_time_constant_s: float = 1.0, smoothing_time_constant_s: float = 0.0) -> None:
+                 noise_time_constant_s: float = 1.0, smoothing_time_constant_s: float = 0.0,
+                 noise_delay_s: float = 0.0) -> None:
         if int(n_channels) != n_channels or n_channels < 2:
             raise ValueError(f"{n_channels=} must be an integer >= 2")
         if int(n_fft) != n_fft or n_fft < 8:
@@ -282,6 +296,15 @@ class NoiseAwareGcc:
         self.smoothing_time_constant_s = float(smoothing_time_constant_s)
         self._params[_P_SMOOTH] = (1.0 if smoothing_time_constant_s == 0
                                    else 1.0 - math.exp(-hop_s / smoothing_time_constant_s))
+        if not (np.isfinite(noise_delay_s) and noise_delay_s >= 0):
+            raise ValueError(f"{noise_delay_s=} must be finite and >= 0")
+        self.noise_delay_frames = int(round(noise_delay_s / hop_s))
+        d = self.noise_delay_frames
+        # the last d frames (channel-major spectra, usable channels, speech presence); slot _ring_pos is the oldest
+        self._ring = np.zeros((max(d, 1), self.n_channels, self.n_bins), np.complex64)
+        self._ring_usable = np.zeros((max(d, 1), self.n_channels), np.bool_)
+        self._ring_p = np.ones(max(d, 1))
+        self._ring_pos = 0
         self._noise = np.zeros((self.n_pairs, self.n_bins), np.complex64)
         self._smooth = np.zeros((self.n_pairs, self.n_bins), np.complex64)
         self._cross = np.zeros((self.n_pairs, self.n_bins), np.complex64)
@@ -296,6 +319,8 @@ class NoiseAwareGcc:
         """Forget the noise and short-time cross-power spectra."""
         self._noise[:] = 0.0
         self._smooth[:] = 0.0
+        self._ring_usable[:] = False
+        self._ring_p[:] = 1.0
         self.n_noise_frames = 0.0
         self._noise_weight = 0.0
         self._params[_P_NOISE_SCALE] = 0.0
@@ -347,7 +372,12 @@ class NoiseAwareGcc:
         if valid is None:
             valid = self._all_valid
         p = float(speech_probability) if np.isfinite(speech_probability) else 1.0
-        self._params[_P_SPEECH] = p
+        d = self.noise_delay_frames
+        if d:   # the oldest frame kept updates the noise, unless speech was heard since
+            p_update = max(p, float(self._ring_p.max()))
+        else:
+            p_update = p
+        self._params[_P_SPEECH] = p_update
         self._params[_P_UPDATE] = 1.0 if update_noise else 0.0
         self._params[_P_MODE] = 0 if raw else _WEIGHTINGS[self.weighting]
         if not (type(spectra) is np.ndarray and spectra.dtype == np.complex64 and spectra.flags.f_contiguous
@@ -359,15 +389,28 @@ class NoiseAwareGcc:
             spectra = np.array(spectra.T, dtype=np.complex64, order="C").T
         if not (type(valid) is np.ndarray and valid.dtype == np.bool_):
             valid = np.asarray(valid, dtype=np.bool_)
-        code = _frame(spectra, valid, self._noise, self._smooth, self._cross, self._corr, self._params, peak_tdoa, peak_value,
-                      self._usable)
+        if d:
+            slot = self._ring_pos
+            old, old_usable = self._ring[slot], self._ring_usable[slot]
+            if not old_usable.any():
+                p_update = 1.0   # not yet d frames: nothing to add
+                self._params[_P_SPEECH] = 1.0
+        else:
+            old, old_usable = spectra.T, self._usable   # the kernel sets usable before it uses it
+        code = _frame(spectra, valid, old, old_usable, self._noise, self._smooth, self._cross, self._corr,
+                      self._params, peak_tdoa, peak_value, self._usable)
         if code == _BAD_SPECTRA_SHAPE:
             raise ValueError(f"spectra.shape={spectra.shape} must be (n_bins, n_channels)="
                              f"{(self.n_bins, self.n_channels)}")
         if code == _BAD_VALID_SHAPE:
             raise ValueError(f"valid.shape={np.shape(valid)} must be ({self.n_channels},)")
+        if d:
+            self._ring[slot] = spectra.T
+            self._ring_usable[slot] = self._usable
+            self._ring_p[slot] = p
+            self._ring_pos = (slot + 1) % d
         if update_noise:
-            a = self._params[_P_ALPHA] * (1.0 - min(max(p, 0.0), 1.0))
+            a = self._params[_P_ALPHA] * (1.0 - min(max(p_update, 0.0), 1.0))
             self.n_noise_frames = (1.0 - a) * self.n_noise_frames + a / self._params[_P_ALPHA]
             self._noise_weight += a * (1.0 - self._noise_weight)
             self._params[_P_NOISE_SCALE] = 1.0 / self._noise_weight if self._noise_weight > 1e-6 else 0.0

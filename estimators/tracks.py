@@ -6,7 +6,8 @@ in a speech pause it re-initialises on the noise. :class:`SourceTracker` keeps a
 each a :class:`~estimators.KalmanToa` (Wiener-velocity model, clutter gate of eq. 17), fed per frame with the
 N best GCC-PHAT peaks of every pair (:class:`estimators.multipeak.NoiseAwareGcc`):
 
-- **Association** (speech frames only): each track, most active first, takes per pair the unused peak
+- **Association** (speech frames only): each track, most active first (the steered one has no priority: a
+  side lobe steered by mistake must not take the peaks it shares with its talker), takes per pair the unused peak
   nearest its predicted TDOA ``H0 (toa + dt rate)`` within a gate of three predicted standard deviations
   (at least ``gate_min_s``, at most ``gate_max_s``); the track updates with the pairs it took (the others
   are left out, confidence 0). A *hit* is an update that used at least ``min_pair_fraction`` of the usable
@@ -25,13 +26,20 @@ N best GCC-PHAT peaks of every pair (:class:`estimators.multipeak.NoiseAwareGcc`
   reverberant tail); when they are there in more than ``noise_quiet_activity`` of
   the non-speech frames and more often than the track has hits on speech frames (both exponential averages
   over 1 s), the source keeps sounding when nobody speaks.
-  Noise tracks are never steered at.
+  A noise track that starts having hits on speech frames (a talker whose breath, or the room of the recording,
+  was heard before the first word) turns talker within about half a second (its hit rate on speech frames is
+  averaged over ``activity_time_constant_s``, a talker's over 1 s). Noise tracks are never steered at.
+- **Ghosts**: two talker tracks hit in the same speech frames (over the last half second) are one talker; the
+  weaker of the two in those frames (matched peak heights summed over the pairs) is a side lobe of its voice
+  (GCC-PHAT of voiced speech peaks again near multiples of the pitch period) or a reflection, and is removed
+  (``death_reason`` "a ghost of track N"); no track is born again at its TOA for ``GHOST_MEMORY_S``.
 - **Death**: a speech track without a hit for ``forget_after_s``, or a noise track not seen in the noise
   spectra for ``forget_after_s``; when the bank is full the least recently hit track that is not steered goes.
   Two tracks of the same kind closer than ``same_source_s`` are merged (the younger goes).
 - **Steering** (``target``): ``"active-talker"`` steers at the speech track with the highest activity (an
   exponential average over speech frames, time constant ``activity_time_constant_s``, of the matched peak
-  heights of its hits) and switches when another's activity exceeds the steered one's by ``switch_ratio``;
+  heights of its hits summed over the pairs and divided by the usable pairs: a track that explains few pairs
+  scores low) and switches when another's activity exceeds the steered one's by ``switch_ratio``;
   ``"nearest"`` steers at the speech track heard earliest by device ``target_device`` relative to the mean
   of all devices (clock offsets cancel between tracks), among tracks with a hit in the last
   ``forget_after_s``. With no confirmed speech track nothing is steered (the caller outputs the reference
@@ -54,6 +62,7 @@ from .toa import KalmanToa
 __all__ = ["SourceTracker", "Track", "TrackKind", "TargetPolicy"]
 
 TrackKind = Literal["tentative", "speech", "noise"]
+GHOST_MEMORY_S = 3.0   # a removed ghost is not born again at the same TOA for this long
 TargetPolicy = Literal["active-talker", "nearest"]
 
 
@@ -68,7 +77,10 @@ class Track:
     last_hit_s: float
     n_hits: int = 0
     confirmed_s: float | None = None
-    activity: float = 0.0            # EMA over speech frames of the matched peak height of hits
+    activity: float = 0.0            # EMA over speech frames of the matched peak heights summed over the pairs,
+    #                                  divided by the usable pairs (0 without a hit)
+    hit_now: bool = False            # hit in the last speech frame
+    hit_value: float = 0.0           # and its matched peak heights summed over the pairs / usable pairs
     quiet_activity: float = 0.0      # EMA over non-speech frames of "its peaks are there" (0 or 1)
     speech_rate: float = 0.0         # EMA over speech frames of "it had a hit" (0 or 1)
     active_s: float = 0.0            # seconds of frames with a hit
@@ -211,6 +223,10 @@ class SourceTracker:
             for t in list(self.tracks):
                 self._end(t, self._last_time_s, "reset: the stream re-aligned a device")
         self.tracks: list[Track] = []
+        self._co: dict[tuple[int, int], list[float]] = {}   # per pair of talker tracks: EMA of both hit, either hit
+        self._ghost_of: tuple[int, int] | None = None       # (ghost, its source) when the steered track was a ghost
+        self._from_id = -1                                   # the track the next switch comes from, when it ended
+        self._ghost_toas: list[tuple[float, np.ndarray]] = []  # (time removed, TOA) of recent ghosts
         self.steered: Track | None = None
         self._quiet_frames = 0
         self.gated = False
@@ -321,7 +337,8 @@ class SourceTracker:
 
     def _associate(self, peak_tdoa, peak_value, pair_ok, n_ok, time_s) -> bool:
         used = np.zeros(peak_value.shape, bool)
-        order = sorted(self.tracks, key=lambda t: (t is not self.steered, t.kind == "tentative", -t.activity))
+        # the strongest talker first: a steered side lobe must not take the peaks its own source shares with it
+        order = sorted(self.tracks, key=lambda t: (t.kind == "tentative", -t.activity))
         hit_any = False
         min_pairs = max(2, int(math.ceil(self.min_pair_fraction * n_ok)))
         for t in order:
@@ -342,7 +359,7 @@ class SourceTracker:
                 if not t.kalman.gated:
                     hit = True
                     used[self._rows[took], k[took]] = True
-                    value = float(conf[took].mean())
+                    value = float(conf[took].sum()) / n_ok   # peak height times the share of pairs
                     self._record_hit(t, time_s, value)
                 elif t is self.steered:
                     self.gated = True
@@ -350,13 +367,50 @@ class SourceTracker:
                 t.kalman.predict()
             self._hold_still(t, quiet=not hit)
             if t.kind == "speech":
-                t.activity += self.activity_beta * ((float(conf[took].mean()) if hit else 0.0) - t.activity)
+                t.activity += self.activity_beta * ((value if hit else 0.0) - t.activity)
             if t.kind != "tentative":
-                t.speech_rate += self.quiet_beta * (float(hit) - t.speech_rate)
+                # a noise track that starts being hit on speech frames (a talker whose breath or the room of
+                # the recording was heard before the first word) turns talker within about half a second
+                beta = self.activity_beta if t.kind == "noise" else self.quiet_beta
+                t.speech_rate += beta * (float(hit) - t.speech_rate)
                 self._relabel(t)
             hit_any |= hit and t.kind != "noise"
+            t.hit_now = hit
+            t.hit_value = value if hit else 0.0
+        self._ghosts(time_s)
         self._used = used
         return hit_any
+
+    def _ghosts(self, time_s: float) -> None:
+        """Two talker tracks heard in the same speech frames (over the last half second) are one talker: the
+        weaker in those frames (matched peak heights summed over the pairs) is a side lobe of its voice or a
+        reflection, and goes. Comparing them on their common frames only keeps a talker who returns after a
+        turn (whose ``activity`` decayed meanwhile) against a noise heard in speech frames."""
+        talkers = [t for t in self.tracks if t.kind == "speech"]
+        beta = 1.0 - math.exp(-self.frame_period_s / 0.5)
+        alive = set()
+        for i, a in enumerate(talkers):
+            for b in talkers[i + 1:]:
+                key = (a.track_id, b.track_id) if a.track_id < b.track_id else (b.track_id, a.track_id)
+                alive.add(key)
+                c = self._co.setdefault(key, [0.0, 0.0, 0.0])   # both hit, either hit, value(lo id) - value(hi id)
+                both = a.hit_now and b.hit_now
+                c[0] += beta * (float(both) - c[0])
+                c[1] += beta * (float(a.hit_now or b.hit_now) - c[1])
+                if not both:
+                    continue
+                lo, hi = (a, b) if a.track_id < b.track_id else (b, a)
+                c[2] += beta * (lo.hit_value - hi.hit_value - c[2])
+                if c[1] > 0.3 and c[0] > 0.6 * c[1] and a in self.tracks and b in self.tracks:
+                    weak, keep = (hi, lo) if c[2] > 0 else (lo, hi)
+                    if weak is self.steered:   # _steer picks the next one, saying why
+                        self._ghost_of = (weak.track_id, keep.track_id)
+                    self._end(weak, time_s, f"a ghost of track {keep.track_id}: heard in the same frames, "
+                                            "weaker (a side lobe of its voice or a reflection)")
+                    self._ghost_toas.append((time_s, weak.toa_s))
+        for key in list(self._co):
+            if key not in alive:
+                del self._co[key]
 
     def _hold_still(self, t: Track, *, quiet: bool) -> None:
         """Keep a track's TOA rates physical: at most ``max_rate_s_per_s`` (a talker walking at 1 m/s changes
@@ -488,12 +542,16 @@ class SourceTracker:
         toa, keep = fit
         if any(self._distance(toa, t.toa_s) < self.same_source_s for t in self.tracks):
             return
+        # no rebirth of a ghost removed in the last few seconds (its source still speaks)
+        self._ghost_toas = [(s, g) for s, g in self._ghost_toas if time_s - s < GHOST_MEMORY_S]
+        if any(self._distance(toa, g) < self.same_source_s for _, g in self._ghost_toas):
+            return
         t = self._new_track("tentative", time_s)
         t.kalman.update(np.where(keep, tdoa, 0.0), keep.astype(float))
         if not t.kalman.initialised:
             self.tracks.remove(t)
             return
-        self._record_hit(t, time_s, float(peak_value[self._rows, k][keep].mean()))
+        self._record_hit(t, time_s, float(peak_value[self._rows, k][keep].sum()) / n_ok)
 
     def _new_track(self, kind: TrackKind, time_s: float) -> Track:
         if len(self.tracks) >= self.max_tracks:
@@ -578,8 +636,12 @@ class SourceTracker:
         if current is None and self.steered is not None:
             reason = f"track {self.steered.track_id} is now labelled {self.steered.kind}"
             self.steered = None
+        elif self._ghost_of is not None:
+            reason = f"track {self._ghost_of[0]} was a ghost of track {self._ghost_of[1]}"
+            self._from_id = self._ghost_of[0]
         else:
             reason = ""
+        self._ghost_of = None
         if not talkers:
             if reason:
                 self.switches.append({"time_s": round(time_s, 3), "from": self._last_id, "to": -1, "reason": reason})
@@ -606,6 +668,7 @@ class SourceTracker:
         return self.switches[-1]["to"] if self.switches else -1
 
     def _switch(self, old: Track | None, new: Track, time_s: float, reason: str) -> None:
-        self.switches.append({"time_s": round(time_s, 3), "from": -1 if old is None else old.track_id,
-                              "to": new.track_id, "reason": reason})
+        from_id = self._from_id if old is None else old.track_id
+        self._from_id = -1
+        self.switches.append({"time_s": round(time_s, 3), "from": from_id, "to": new.track_id, "reason": reason})
         self.steered = new

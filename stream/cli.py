@@ -30,6 +30,9 @@ def _add_engine_options(p: argparse.ArgumentParser) -> None:
     g.add_argument("--gcc-smoothing-s", type=float,
                    help="short-time average of the cross-power spectra before the noise removal, seconds "
                         "(default 0.1; 0: every frame alone)")
+    g.add_argument("--noise-delay-s", type=float,
+                   help="a frame joins the noise cross-power average this late, and only if no speech was heard "
+                        "since (default 0.25: a talker's first words, before the detector fires, stay out of it)")
     g.add_argument("--working-rate-hz", type=float, help="rate every device is resampled to (default: first device's)")
     g.add_argument("--frame-samples", type=int, help="analysis frame (default: ~85 ms, 4096 at 48 kHz)")
     g.add_argument("--hop-samples", type=int, help="hop (default: frame/4, 75%% overlap); e.g. 512/128 for low latency")

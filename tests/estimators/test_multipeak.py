@@ -130,3 +130,31 @@ def test_short_time_smoothing_finds_a_talker_10_db_below_the_noise():
     with pytest.raises(ValueError, match="smoothing"):
         NoiseAwareGcc(3, n_fft=N_FFT, sample_rate_hz=FS, hop_s=HOP / FS, max_tdoa_s=0.004,
                       smoothing_time_constant_s=-1.0)
+
+
+def test_a_late_speech_detector_leaks_the_talker_into_the_noise_average_unless_the_update_waits():
+    """The speech detector fires 3 hops after each onset (with a hangover at the offsets): without a delay those first hops of the talker
+    enter the noise cross-power average (the talker becomes a 'noise source' and is subtracted from itself);
+    with the update 0.25 s late, gated by the speech heard since, they do not."""
+    x, active, d_noise, d_talk = _two_sources(3, noise_gain=1.0, talker_gain=1.0)
+    late = active.copy()
+    for k in np.flatnonzero(~active[1:] & active[:-1]) + 1:
+        late[k:k + 4] = True    # a hangover covers the frames that still hold the talker's last hop
+    for k in np.flatnonzero(active[1:] & ~active[:-1]) + 1:
+        late[k:k + 3] = False   # but the onsets are detected 3 hops late
+    y_talk = _toa_to_tdoa_samples(d_talk)
+    m = x.shape[1]
+    leak = {}
+    for delay in (0.0, 0.25):
+        stft = beamform.StreamingStft(m, frame_samples=N_FFT, hop_samples=HOP)
+        gcc = NoiseAwareGcc(m, n_fft=N_FFT, sample_rate_hz=FS, hop_s=HOP / FS, max_tdoa_s=0.004,
+                            noise_delay_s=delay)
+        for k in range(len(late)):
+            gcc.process(stft.process(x[k * HOP:(k + 1) * HOP]), speech_probability=float(late[k]))
+        _, _, corr = gcc.noise_peaks()
+        lag = np.round(y_talk).astype(int) % N_FFT
+        leak[delay] = float(np.mean(corr[np.arange(len(lag)), lag]))   # noise GCC at the talker's delays
+    assert leak[0.0] > 0.05, leak   # printed on failure
+    assert leak[0.25] < 0.3 * leak[0.0], leak
+    with pytest.raises(ValueError, match="noise_delay_s"):
+        NoiseAwareGcc(m, n_fft=N_FFT, sample_rate_hz=FS, hop_s=HOP / FS, max_tdoa_s=0.004, noise_delay_s=-1)

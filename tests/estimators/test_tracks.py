@@ -143,3 +143,46 @@ def test_a_talker_back_after_the_other_keeps_its_track_and_no_track_runs_away():
     a_tracks = [trk for trk in tr.tracks if np.max(np.abs(trk.toa_s - TALKER_A)) < 2.5e-4]
     assert len(a_tracks) == 1 and a_tracks[0].born_s < 1.0        # the first track, not a new one
     assert tr.steered is a_tracks[0]
+
+
+def test_a_side_lobe_ghost_steered_first_gives_way_to_its_talker():
+    """A talker's voice also peaks at a side lobe (here: the talker's TOA moved by one pitch period on two
+    devices). The ghost, born first and steered, is heard in exactly the talker's frames and is weaker: it is
+    removed, the beam moves to the talker within half a second, and the report says why."""
+    rng = np.random.default_rng(5)
+    tr = _tracker()
+    ghost = TALKER_A + np.array([0.0, 2.6e-3, 2.6e-3, 0.0, 0.0])
+    t = 0.0
+    for _ in range(int(0.3 / DT)):   # the first frames: only the side lobe stands out
+        tdoa, value = _peaks([(ghost, 0.35)], rng)
+        tr.update(tdoa, value, speech_probability=1.0, usable=USABLE, time_s=t)
+        t += DT
+    assert tr.steered is not None and np.max(np.abs(tr.steered_toa_s - ghost)) < 2.5e-4
+    t_talker = t
+    on_talker = None
+    for _ in range(int(2.0 / DT)):
+        tdoa, value = _peaks([(TALKER_A, 0.5), (ghost, 0.2)], rng)
+        toa = tr.update(tdoa, value, speech_probability=1.0, usable=USABLE, time_s=t)
+        if on_talker is None and np.max(np.abs(toa - TALKER_A)) < 2.5e-4:
+            on_talker = t - t_talker
+        t += DT
+    assert on_talker is not None and on_talker <= 0.5, on_talker
+    assert np.max(np.abs(tr.steered_toa_s - TALKER_A)) < 2.5e-4
+    rep = tr.report()
+    assert any("ghost" in s["reason"] or "more active" in s["reason"] for s in rep["switches"][1:])
+    assert not any(np.max(np.abs(x.toa_s - ghost)) < 2.5e-4 for x in tr.tracks if x.kind == "speech")
+    assert any(e["death_reason"].startswith("a ghost of track") for e in rep["tracks"])
+
+
+def test_a_talker_returning_after_the_other_is_not_taken_for_a_ghost_of_the_noise():
+    """A noise heard in speech frames is co-active with every talker; the ghost rule only removes a younger,
+    weaker track, so the returning talker (older, its activity decayed during the other's turn) stays."""
+    rng = np.random.default_rng(6)
+    tr = _tracker()
+    t = 0.0
+    for talker in (TALKER_A, TALKER_B, TALKER_A):
+        for _ in range(int(2.0 / DT)):
+            tdoa, value = _peaks([(talker, 0.5), (NOISE, 0.3)], rng)
+            tr.update(tdoa, value, speech_probability=1.0, usable=USABLE, time_s=t)
+            t += DT
+        assert np.max(np.abs(tr.steered_toa_s - talker)) < 2.5e-4
