@@ -62,7 +62,8 @@ from .toa import KalmanToa
 __all__ = ["SourceTracker", "Track", "TrackKind", "TargetPolicy"]
 
 TrackKind = Literal["tentative", "speech", "noise"]
-GHOST_MEMORY_S = 3.0   # a removed ghost is not born again at the same TOA for this long
+GHOST_MEMORY_S = 3.0
+MAX_DRIFT_RATE_S_PER_S = 2.5e-4   # relative TOA rate two clocks at +-100 ppm (and some margin) can give   # a removed ghost is not born again at the same TOA for this long
 TargetPolicy = Literal["active-talker", "nearest"]
 
 
@@ -302,10 +303,10 @@ class SourceTracker:
                 self._birth(peak_tdoa_s, peak_value, pair_ok, n_ok, usable, time_s)
             self._quiet_frames = 0
         else:
+            self._quiet_frames += 1
             for t in self.tracks:
                 t.kalman.predict()
-                self._hold_still(t, quiet=True)
-            self._quiet_frames += 1
+                self._hold_still(t, quiet=self._quiet_frames >= self.quiet_skip_frames)
             if n_ok and self._quiet_frames >= self.quiet_skip_frames:   # past the talker's reverberant tail
                 self._quiet_check(peak_tdoa_s, peak_value, pair_ok, n_ok)
         if noise_peaks is not None and self.n_frames % self.noise_every_frames == 0:
@@ -365,7 +366,7 @@ class SourceTracker:
                     self.gated = True
             else:
                 t.kalman.predict()
-            self._hold_still(t, quiet=not hit)
+            self._hold_still(t, quiet=False)
             if t.kind == "speech":
                 t.activity += self.activity_beta * ((value if hit else 0.0) - t.activity)
             if t.kind != "tentative":
@@ -415,11 +416,14 @@ class SourceTracker:
     def _hold_still(self, t: Track, *, quiet: bool) -> None:
         """Keep a track's TOA rates physical: at most ``max_rate_s_per_s`` (a talker walking at 1 m/s changes
         a TDOA by at most 2.9 ms/s; clock drift adds 0.2 ms/s), so that a rate learned from a few stray peaks
-        cannot carry a track away while it is not corrected. The rate is not damped in pauses: it is mostly
-        the devices' clock drift, which goes on while the talker is silent."""
+        cannot carry a track away while it is not corrected. In a pause (``quiet``, from 0.3 s after the last
+        speech frame) the rate is held to what clock drift alone gives (``MAX_DRIFT_RATE_S_PER_S``): it is not
+        damped to 0, as drift goes on while the talker is silent, but a motion or a stray rate learned from a
+        few peaks must not carry the track seconds away before it is heard again."""
         x = t.kalman._kf.x
         m = self.n_devices - 1
-        np.clip(x[m:], -self.max_rate_s_per_s, self.max_rate_s_per_s, out=x[m:])
+        limit = MAX_DRIFT_RATE_S_PER_S if quiet else self.max_rate_s_per_s
+        np.clip(x[m:], -limit, limit, out=x[m:])
 
     def _quiet_check(self, peak_tdoa, peak_value, pair_ok, n_ok) -> None:
         """Non-speech frame (peaks of the plain PHAT): which tracks' peaks are still there? A source that
@@ -462,7 +466,9 @@ class SourceTracker:
                 t.kind = "speech"
                 t.confirmed_s = time_s
                 t.activity = value
-                t.speech_rate = 1.0
+                # the hit rate's average as if it had run from the birth: a few hits are little evidence against
+                # a source heard all through the pauses (a dish clatter that fired the speech detector)
+                t.speech_rate = 1.0 - (1.0 - self.quiet_beta) ** t.n_hits
                 t.hit_times_s = []
 
     def _consistent(self, tdoa: np.ndarray, ok: np.ndarray) -> np.ndarray:

@@ -186,3 +186,27 @@ def test_a_talker_returning_after_the_other_is_not_taken_for_a_ghost_of_the_nois
             tr.update(tdoa, value, speech_probability=1.0, usable=USABLE, time_s=t)
             t += DT
         assert np.max(np.abs(tr.steered_toa_s - talker)) < 2.5e-4
+
+
+def test_in_a_pause_a_track_moves_no_faster_than_clock_drift():
+    """A talker walks (the TOA of device 1 changes by 2 ms/s), then falls silent for 3 s: the track's rate is
+    held to what clock drift gives from 0.3 s into the pause (past the reverberant tail) on: it ends about 1.3
+    ms from where the talker stopped, where the walking rate would have carried it 6 ms."""
+    from estimators.tracks import MAX_DRIFT_RATE_S_PER_S
+    rng = np.random.default_rng(7)
+    tr = _tracker()
+    t = 0.0
+    toa = TALKER_A.copy()
+    for _ in range(int(2.0 / DT)):
+        toa[1] += 2e-3 * DT
+        tdoa, value = _peaks([(toa, 0.5)], rng)
+        tr.update(tdoa, value, speech_probability=1.0, usable=USABLE, time_s=t)
+        t += DT
+    assert np.max(np.abs(tr.steered_toa_s - toa)) < 2.5e-4
+    for _ in range(int(3.0 / DT)):
+        tdoa, value = _peaks([], rng)
+        tr.update(tdoa, value, speech_probability=0.0, usable=USABLE, time_s=t)
+        t += DT
+    rate = tr.steered.kalman._kf.x[M - 1:]
+    assert np.all(np.abs(rate) <= MAX_DRIFT_RATE_S_PER_S + 1e-12)
+    assert np.max(np.abs(tr.steered_toa_s - toa)) < 0.3 * 2e-3 + 2.7 * MAX_DRIFT_RATE_S_PER_S + 2e-4
