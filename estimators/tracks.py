@@ -29,6 +29,10 @@ N best GCC-PHAT peaks of every pair (:class:`estimators.multipeak.NoiseAwareGcc`
   A noise track that starts having hits on speech frames (a talker whose breath, or the room of the recording,
   was heard before the first word) turns talker within about half a second (its hit rate on speech frames is
   averaged over ``activity_time_constant_s``, a talker's over 1 s). Noise tracks are never steered at.
+- **Re-anchoring** (the steered track): one device locked on a reflection or a side lobe while the others are
+  right shows up as every pair of that device peaking at one other TOA for it; the peaks' votes (decaying over
+  about half a second of speech frames) move that device there when they outweigh staying ``REANCHOR_RATIO``
+  to one (``n_reanchored`` in the report).
 - **Ghosts**: two talker tracks hit in the same speech frames (over the last half second) are one talker; the
   weaker of the two in those frames (matched peak heights summed over the pairs) is a side lobe of its voice
   (GCC-PHAT of voiced speech peaks again near multiples of the pitch period) or a reflection, and is removed
@@ -63,6 +67,7 @@ __all__ = ["SourceTracker", "Track", "TrackKind", "TargetPolicy"]
 
 TrackKind = Literal["tentative", "speech", "noise"]
 GHOST_MEMORY_S = 3.0
+REANCHOR_RATIO = 2.0              # votes for moving one device of the steered track against staying
 MAX_DRIFT_RATE_S_PER_S = 2.5e-4   # relative TOA rate two clocks at +-100 ppm (and some margin) can give   # a removed ghost is not born again at the same TOA for this long
 TargetPolicy = Literal["active-talker", "nearest"]
 
@@ -81,6 +86,7 @@ class Track:
     activity: float = 0.0            # EMA over speech frames of the matched peak heights summed over the pairs,
     #                                  divided by the usable pairs (0 without a hit)
     hit_now: bool = False            # hit in the last speech frame
+    anchor_votes: np.ndarray | None = field(default=None, repr=False)   # (M, bins): see SourceTracker._reanchor
     hit_value: float = 0.0           # and its matched peak heights summed over the pairs / usable pairs
     quiet_activity: float = 0.0      # EMA over non-speech frames of "its peaks are there" (0 or 1)
     speech_rate: float = 0.0         # EMA over speech frames of "it had a hit" (0 or 1)
@@ -185,6 +191,12 @@ class SourceTracker:
         self.noise_quiet_activity = float(noise_quiet_activity)
         self.max_rate_s_per_s = float(max_rate_s_per_s)
         self.young_s = 3.0
+        self._bin_s = 2.0 / self.sample_rate_hz
+        self._n_bins = 2 * int(math.ceil(0.02 / self._bin_s)) + 1          # moves up to +-20 ms
+        self._anchor_gate_bins = max(2, int(math.ceil(self.gate_max_s / self._bin_s)))
+        self._anchor_beta = 1.0 - math.exp(-self.frame_period_s / 0.5)
+        # a floor against moving on next to no votes: one frame of every pair of the device at height 0.15
+        self._anchor_min_votes = 0.15 * (self.n_devices - 1)
         self._kalman_kwargs = dict(frame_period_s=self.frame_period_s, accel_std_s_per_s2=accel_std_s_per_s2,
                                    tdoa_std_s=tdoa_std_s, gate_probability=gate_probability,
                                    reinit_after_n_gated=None, min_confidence=0.0)
@@ -216,6 +228,7 @@ class SourceTracker:
             self.n_frames = 0
             self.n_speech_frames = 0
             self.n_births = 0
+            self.n_reanchored = 0
             self._next_id = 0
             self._last_time_s = 0.0
         else:
@@ -261,6 +274,7 @@ class SourceTracker:
         return {"target": self.target if self.target != "nearest" else f"nearest {self.target_device}",
                 "n_frames": self.n_frames, "n_speech_frames": self.n_speech_frames, "n_births": self.n_births,
                 "speech_s": round(self.n_speech_frames * self.frame_period_s, 3),
+                "n_reanchored": self.n_reanchored,
                 "tracks": [t.summary() for t in sorted(self.ended + self.tracks, key=lambda t: t.track_id)
                            if t.kind != "tentative" or t.n_hits >= self.confirm_hits],
                 "switches": self.switches}
@@ -345,6 +359,9 @@ class SourceTracker:
         min_pairs = max(2, int(math.ceil(self.min_pair_fraction * n_ok)))
         for t in order:
             pred, gate = self._predicted(t)
+            if t is self.steered:
+                self._reanchor(t, peak_tdoa, peak_value, pred, pair_ok)
+                pred, gate = self._predicted(t)
             dist = np.abs(peak_tdoa - pred[:, None])
             ok = (dist <= gate[:, None]) & (peak_value >= self.min_peak_value) & ~used & pair_ok[:, None]
             dist = np.where(ok, dist, np.inf)
@@ -382,6 +399,40 @@ class SourceTracker:
         self._ghosts(time_s)
         self._used = used
         return hit_any
+
+    def _reanchor(self, t: Track, peak_tdoa, peak_value, pred, pair_ok) -> None:
+        """One device of the steered track locked on a reflection or a side lobe: all its pairs show a peak at
+        one other TOA for it, while the others agree with the track. Every peak of pair (i, j) votes for moving
+        device i by ``peak - pred`` and device j by the opposite (weighted by its height, averaged over about half
+        a second of speech frames, in bins of two samples); a device whose best move beyond the gate has more
+        than ``REANCHOR_RATIO`` times the votes of staying is moved there (a known shift, as a re-alignment)."""
+        if t.anchor_votes is None:
+            t.anchor_votes = np.zeros((self.n_devices, self._n_bins))
+        votes = t.anchor_votes
+        votes *= 1.0 - self._anchor_beta
+        d = peak_tdoa - pred[:, None]
+        w = np.where((peak_value >= self.min_peak_value) & pair_ok[:, None], peak_value, 0.0)
+        b_i = np.clip(np.rint(d / self._bin_s).astype(int) + self._n_bins // 2, 0, self._n_bins - 1)
+        b_j = np.clip(np.rint(-d / self._bin_s).astype(int) + self._n_bins // 2, 0, self._n_bins - 1)
+        np.add.at(votes, (np.broadcast_to(self._pairs[:, :1], d.shape), b_i), w)
+        np.add.at(votes, (np.broadcast_to(self._pairs[:, 1:], d.shape), b_j), w)
+        c = self._n_bins // 2
+        stay = votes[:, c - 1:c + 2].sum(axis=1)
+        far = votes.copy()
+        far[:, c - self._anchor_gate_bins:c + self._anchor_gate_bins + 1] = 0.0
+        best = np.argmax(far, axis=1)
+        move = np.zeros(self.n_devices)
+        for dev in range(self.n_devices):
+            v = far[dev, best[dev]]
+            if v > REANCHOR_RATIO * stay[dev] and v > self._anchor_min_votes:
+                move[dev] = (best[dev] - c) * self._bin_s
+        if move.any():   # one device at a time (the one with the most votes to move), then fresh votes
+            dev = int(np.argmax(np.where(move != 0, far[np.arange(self.n_devices), best], -1.0)))
+            delta = np.zeros(self.n_devices)
+            delta[dev] = move[dev]
+            t.kalman.shift(delta - delta[0])
+            votes[:] = 0.0
+            self.n_reanchored += 1
 
     def _ghosts(self, time_s: float) -> None:
         """Two talker tracks heard in the same speech frames (over the last half second) are one talker: the

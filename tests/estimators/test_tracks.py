@@ -210,3 +210,29 @@ def test_in_a_pause_a_track_moves_no_faster_than_clock_drift():
     rate = tr.steered.kalman._kf.x[M - 1:]
     assert np.all(np.abs(rate) <= MAX_DRIFT_RATE_S_PER_S + 1e-12)
     assert np.max(np.abs(tr.steered_toa_s - toa)) < 0.3 * 2e-3 + 2.7 * MAX_DRIFT_RATE_S_PER_S + 2e-4
+
+
+def test_one_device_on_a_reflection_is_moved_back_to_the_talker():
+    """The steered track starts with device 3 on a reflection 2.5 ms late (only that peak stood out at first);
+    then the direct path is the higher peak on all of device 3's pairs: the track's device 3 is moved there
+    (a re-anchoring, counted in the report) and the beam is on the talker within a second."""
+    rng = np.random.default_rng(8)
+    tr = _tracker()
+    off = TALKER_A + np.array([0.0, 0.0, 0.0, 2.5e-3, 0.0])
+    t = 0.0
+    for _ in range(int(0.3 / DT)):
+        tdoa, value = _peaks([(off, 0.4)], rng)
+        tr.update(tdoa, value, speech_probability=1.0, usable=USABLE, time_s=t)
+        t += DT
+    assert np.max(np.abs(tr.steered_toa_s - off)) < 2.5e-4
+    t0, on = t, None
+    for _ in range(int(2.0 / DT)):
+        tdoa, value = _peaks([(TALKER_A, 0.5)], rng)
+        toa = tr.update(tdoa, value, speech_probability=1.0, usable=USABLE, time_s=t)
+        if on is None and np.max(np.abs(toa - TALKER_A)) < 2.5e-4:
+            on = t - t0
+        t += DT
+    assert on is not None and on <= 1.0, on
+    assert np.max(np.abs(tr.steered_toa_s - TALKER_A)) < 2.5e-4
+    rep = tr.report()
+    assert rep["n_reanchored"] >= 1 and len(rep["switches"]) == 1   # the same track, moved, not a new one
