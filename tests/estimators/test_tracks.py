@@ -145,27 +145,32 @@ def test_a_talker_back_after_the_other_keeps_its_track_and_no_track_runs_away():
     assert tr.steered is a_tracks[0]
 
 
+def _wrong_then_right(tr, wrong, wrong_value, right_sources, rng, *, seconds=2.0):
+    """0.3 s in which only ``wrong`` stands out (it gets the first track and the beam), then ``right_sources``
+    for ``seconds``; returns how long after the change the beam was first on TALKER_A (None: never)."""
+    t = 0.0
+    for _ in range(int(0.3 / DT)):
+        tdoa, value = _peaks([(wrong, wrong_value)], rng)
+        tr.update(tdoa, value, speech_probability=1.0, usable=USABLE, time_s=t)
+        t += DT
+    assert tr.steered is not None and np.max(np.abs(tr.steered_toa_s - wrong)) < 2.5e-4
+    t0, on = t, None
+    for _ in range(int(seconds / DT)):
+        tdoa, value = _peaks(right_sources, rng)
+        toa = tr.update(tdoa, value, speech_probability=1.0, usable=USABLE, time_s=t)
+        if on is None and np.max(np.abs(toa - TALKER_A)) < 2.5e-4:
+            on = t - t0
+        t += DT
+    return on
+
+
 def test_a_side_lobe_ghost_steered_first_gives_way_to_its_talker():
     """A talker's voice also peaks at a side lobe (here: the talker's TOA moved by one pitch period on two
     devices). The ghost, born first and steered, is heard in exactly the talker's frames and is weaker: it is
     removed, the beam moves to the talker within half a second, and the report says why."""
-    rng = np.random.default_rng(5)
     tr = _tracker()
     ghost = TALKER_A + np.array([0.0, 2.6e-3, 2.6e-3, 0.0, 0.0])
-    t = 0.0
-    for _ in range(int(0.3 / DT)):   # the first frames: only the side lobe stands out
-        tdoa, value = _peaks([(ghost, 0.35)], rng)
-        tr.update(tdoa, value, speech_probability=1.0, usable=USABLE, time_s=t)
-        t += DT
-    assert tr.steered is not None and np.max(np.abs(tr.steered_toa_s - ghost)) < 2.5e-4
-    t_talker = t
-    on_talker = None
-    for _ in range(int(2.0 / DT)):
-        tdoa, value = _peaks([(TALKER_A, 0.5), (ghost, 0.2)], rng)
-        toa = tr.update(tdoa, value, speech_probability=1.0, usable=USABLE, time_s=t)
-        if on_talker is None and np.max(np.abs(toa - TALKER_A)) < 2.5e-4:
-            on_talker = t - t_talker
-        t += DT
+    on_talker = _wrong_then_right(tr, ghost, 0.35, [(TALKER_A, 0.5), (ghost, 0.2)], np.random.default_rng(5))
     assert on_talker is not None and on_talker <= 0.5, on_talker
     assert np.max(np.abs(tr.steered_toa_s - TALKER_A)) < 2.5e-4
     rep = tr.report()
@@ -216,22 +221,9 @@ def test_one_device_on_a_reflection_is_moved_back_to_the_talker():
     """The steered track starts with device 3 on a reflection 2.5 ms late (only that peak stood out at first);
     then the direct path is the higher peak on all of device 3's pairs: the track's device 3 is moved there
     (a re-anchoring, counted in the report) and the beam is on the talker within a second."""
-    rng = np.random.default_rng(8)
     tr = _tracker()
     off = TALKER_A + np.array([0.0, 0.0, 0.0, 2.5e-3, 0.0])
-    t = 0.0
-    for _ in range(int(0.3 / DT)):
-        tdoa, value = _peaks([(off, 0.4)], rng)
-        tr.update(tdoa, value, speech_probability=1.0, usable=USABLE, time_s=t)
-        t += DT
-    assert np.max(np.abs(tr.steered_toa_s - off)) < 2.5e-4
-    t0, on = t, None
-    for _ in range(int(2.0 / DT)):
-        tdoa, value = _peaks([(TALKER_A, 0.5)], rng)
-        toa = tr.update(tdoa, value, speech_probability=1.0, usable=USABLE, time_s=t)
-        if on is None and np.max(np.abs(toa - TALKER_A)) < 2.5e-4:
-            on = t - t0
-        t += DT
+    on = _wrong_then_right(tr, off, 0.4, [(TALKER_A, 0.5)], np.random.default_rng(8))
     assert on is not None and on <= 1.0, on
     assert np.max(np.abs(tr.steered_toa_s - TALKER_A)) < 2.5e-4
     rep = tr.report()
