@@ -66,9 +66,9 @@ from .toa import KalmanToa
 __all__ = ["SourceTracker", "Track", "TrackKind", "TargetPolicy"]
 
 TrackKind = Literal["tentative", "speech", "noise"]
-GHOST_MEMORY_S = 3.0
+GHOST_MEMORY_S = 3.0              # a removed ghost is not born again at the same TOA for this long
 REANCHOR_RATIO = 2.0              # votes for moving one device of the steered track against staying
-MAX_DRIFT_RATE_S_PER_S = 2.5e-4   # relative TOA rate two clocks at +-100 ppm (and some margin) can give   # a removed ghost is not born again at the same TOA for this long
+MAX_DRIFT_RATE_S_PER_S = 2.5e-4   # relative TOA rate two clocks at +-100 ppm (and some margin) can give
 TargetPolicy = Literal["active-talker", "nearest"]
 
 
@@ -86,8 +86,8 @@ class Track:
     activity: float = 0.0            # EMA over speech frames of the matched peak heights summed over the pairs,
     #                                  divided by the usable pairs (0 without a hit)
     hit_now: bool = False            # hit in the last speech frame
-    anchor_votes: np.ndarray | None = field(default=None, repr=False)   # (M, bins): see SourceTracker._reanchor
     hit_value: float = 0.0           # and its matched peak heights summed over the pairs / usable pairs
+    anchor_votes: np.ndarray | None = field(default=None, repr=False)   # (M, bins): see SourceTracker._reanchor
     quiet_activity: float = 0.0      # EMA over non-speech frames of "its peaks are there" (0 or 1)
     speech_rate: float = 0.0         # EMA over speech frames of "it had a hit" (0 or 1)
     active_s: float = 0.0            # seconds of frames with a hit
