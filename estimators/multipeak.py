@@ -393,7 +393,7 @@ class NoiseAwareGcc:
             slot = self._ring_pos
             old, old_usable = self._ring[slot], self._ring_usable[slot]
             if not old_usable.any():
-                p_update = 1.0   # not yet d frames: nothing to add
+                p_update = 1.0   # the oldest slot holds no usable channel (not yet filled): nothing to add
                 self._params[_P_SPEECH] = 1.0
         else:
             old, old_usable = spectra.T, self._usable   # the kernel sets usable before it uses it

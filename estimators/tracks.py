@@ -194,7 +194,7 @@ class SourceTracker:
         self._bin_s = 2.0 / self.sample_rate_hz
         self._n_bins = 2 * int(math.ceil(0.02 / self._bin_s)) + 1          # moves up to +-20 ms
         self._anchor_gate_bins = max(2, int(math.ceil(self.gate_max_s / self._bin_s)))
-        self._anchor_beta = 1.0 - math.exp(-self.frame_period_s / 0.5)
+        self._half_s_beta = 1.0 - math.exp(-self.frame_period_s / 0.5)   # averages over ~0.5 s of speech frames
         # a floor against moving on next to no votes: one frame of every pair of the device at height 0.15
         self._anchor_min_votes = 0.15 * (self.n_devices - 1)
         self._kalman_kwargs = dict(frame_period_s=self.frame_period_s, accel_std_s_per_s2=accel_std_s_per_s2,
@@ -359,8 +359,7 @@ class SourceTracker:
         min_pairs = max(2, int(math.ceil(self.min_pair_fraction * n_ok)))
         for t in order:
             pred, gate = self._predicted(t)
-            if t is self.steered:
-                self._reanchor(t, peak_tdoa, peak_value, pred, pair_ok)
+            if t is self.steered and self._reanchor(t, peak_tdoa, peak_value, pred, pair_ok):
                 pred, gate = self._predicted(t)
             dist = np.abs(peak_tdoa - pred[:, None])
             ok = (dist <= gate[:, None]) & (peak_value >= self.min_peak_value) & ~used & pair_ok[:, None]
@@ -400,16 +399,17 @@ class SourceTracker:
         self._used = used
         return hit_any
 
-    def _reanchor(self, t: Track, peak_tdoa, peak_value, pred, pair_ok) -> None:
+    def _reanchor(self, t: Track, peak_tdoa, peak_value, pred, pair_ok) -> bool:
         """One device of the steered track locked on a reflection or a side lobe: all its pairs show a peak at
         one other TOA for it, while the others agree with the track. Every peak of pair (i, j) votes for moving
         device i by ``peak - pred`` and device j by the opposite (weighted by its height, averaged over about half
         a second of speech frames, in bins of two samples); a device whose best move beyond the gate has more
-        than ``REANCHOR_RATIO`` times the votes of staying is moved there (a known shift, as a re-alignment)."""
+        than ``REANCHOR_RATIO`` times the votes of staying is moved there (a known shift, as a re-alignment).
+        Returns whether a device moved."""
         if t.anchor_votes is None:
             t.anchor_votes = np.zeros((self.n_devices, self._n_bins))
         votes = t.anchor_votes
-        votes *= 1.0 - self._anchor_beta
+        votes *= 1.0 - self._half_s_beta
         d = peak_tdoa - pred[:, None]
         w = np.where((peak_value >= self.min_peak_value) & pair_ok[:, None], peak_value, 0.0)
         b_i = np.clip(np.rint(d / self._bin_s).astype(int) + self._n_bins // 2, 0, self._n_bins - 1)
@@ -421,18 +421,17 @@ class SourceTracker:
         far = votes.copy()
         far[:, c - self._anchor_gate_bins:c + self._anchor_gate_bins + 1] = 0.0
         best = np.argmax(far, axis=1)
-        move = np.zeros(self.n_devices)
-        for dev in range(self.n_devices):
-            v = far[dev, best[dev]]
-            if v > REANCHOR_RATIO * stay[dev] and v > self._anchor_min_votes:
-                move[dev] = (best[dev] - c) * self._bin_s
-        if move.any():   # one device at a time (the one with the most votes to move), then fresh votes
-            dev = int(np.argmax(np.where(move != 0, far[np.arange(self.n_devices), best], -1.0)))
-            delta = np.zeros(self.n_devices)
-            delta[dev] = move[dev]
-            t.kalman.shift(delta - delta[0])
-            votes[:] = 0.0
-            self.n_reanchored += 1
+        v = far[np.arange(self.n_devices), best]
+        movable = (v > REANCHOR_RATIO * stay) & (v > self._anchor_min_votes)
+        if not movable.any():
+            return False
+        dev = int(np.argmax(np.where(movable, v, -1.0)))   # one device at a time: the most votes, then fresh votes
+        delta = np.zeros(self.n_devices)
+        delta[dev] = (best[dev] - c) * self._bin_s
+        t.kalman.shift(delta - delta[0])
+        votes[:] = 0.0
+        self.n_reanchored += 1
+        return True
 
     def _ghosts(self, time_s: float) -> None:
         """Two talker tracks heard in the same speech frames (over the last half second) are one talker: the
@@ -440,7 +439,7 @@ class SourceTracker:
         reflection, and goes. Comparing them on their common frames only keeps a talker who returns after a
         turn (whose ``activity`` decayed meanwhile) against a noise heard in speech frames."""
         talkers = [t for t in self.tracks if t.kind == "speech"]
-        beta = 1.0 - math.exp(-self.frame_period_s / 0.5)
+        beta = self._half_s_beta
         alive = set()
         for i, a in enumerate(talkers):
             for b in talkers[i + 1:]:
