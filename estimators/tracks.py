@@ -58,6 +58,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Literal
 
+import numba
 import numpy as np
 
 from .conventions import pair_matrix, pairs
@@ -70,6 +71,43 @@ GHOST_MEMORY_S = 3.0              # a removed ghost is not born again at the sam
 REANCHOR_RATIO = 2.0              # votes for moving one device of the steered track against staying
 MAX_DRIFT_RATE_S_PER_S = 2.5e-4   # relative TOA rate two clocks at +-100 ppm (and some margin) can give
 TargetPolicy = Literal["active-talker", "nearest"]
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _anchor_vote(votes, peak_tdoa, peak_value, pred, pair_ok, pair_idx, decay, inv_bin_s, min_peak, gate_bins,
+                 ratio, min_votes):
+    """One frame of :meth:`SourceTracker._reanchor`'s votes, compiled (numpy's per-call overhead was most of its
+    cost). ``votes`` (M, bins, centre bin = no move) decays by ``decay`` and takes the frame's peaks: a peak of
+    pair (i, j) at ``pred + d`` votes, with its height, for moving device i by ``d`` and device j by ``-d``.
+    Returns (device, bin) of the move with the most votes among the devices whose best bin beyond
+    ``gate_bins`` of the centre has more than ``ratio`` times the votes of the three centre bins and more than
+    ``min_votes``; (-1, -1) when no device qualifies."""
+    n_dev, n_bins = votes.shape
+    c = n_bins // 2
+    for i in range(n_dev):
+        for b in range(n_bins):
+            votes[i, b] *= decay
+    for p in range(peak_tdoa.shape[0]):
+        if not pair_ok[p]:
+            continue
+        i, j = pair_idx[p, 0], pair_idx[p, 1]
+        for k in range(peak_tdoa.shape[1]):
+            w = peak_value[p, k]
+            if not w >= min_peak:
+                continue
+            b = int(np.rint((peak_tdoa[p, k] - pred[p]) * inv_bin_s))
+            votes[i, min(max(c + b, 0), n_bins - 1)] += w
+            votes[j, min(max(c - b, 0), n_bins - 1)] += w
+    dev, dev_bin, dev_votes = -1, -1, -1.0
+    for i in range(n_dev):
+        stay = votes[i, c - 1] + votes[i, c] + votes[i, c + 1]
+        best, v = 0, votes[i, 0]
+        for b in range(n_bins):
+            if abs(b - c) > gate_bins and votes[i, b] > v:
+                best, v = b, votes[i, b]
+        if v > ratio * stay and v > min_votes and v > dev_votes:
+            dev, dev_bin, dev_votes = i, best, v
+    return dev, dev_bin
 
 
 @dataclass
@@ -409,25 +447,14 @@ class SourceTracker:
         if t.anchor_votes is None:
             t.anchor_votes = np.zeros((self.n_devices, self._n_bins))
         votes = t.anchor_votes
-        votes *= 1.0 - self._half_s_beta
-        d = peak_tdoa - pred[:, None]
-        w = np.where((peak_value >= self.min_peak_value) & pair_ok[:, None], peak_value, 0.0)
-        b_i = np.clip(np.rint(d / self._bin_s).astype(int) + self._n_bins // 2, 0, self._n_bins - 1)
-        b_j = np.clip(np.rint(-d / self._bin_s).astype(int) + self._n_bins // 2, 0, self._n_bins - 1)
-        np.add.at(votes, (np.broadcast_to(self._pairs[:, :1], d.shape), b_i), w)
-        np.add.at(votes, (np.broadcast_to(self._pairs[:, 1:], d.shape), b_j), w)
         c = self._n_bins // 2
-        stay = votes[:, c - 1:c + 2].sum(axis=1)
-        far = votes.copy()
-        far[:, c - self._anchor_gate_bins:c + self._anchor_gate_bins + 1] = 0.0
-        best = np.argmax(far, axis=1)
-        v = far[np.arange(self.n_devices), best]
-        movable = (v > REANCHOR_RATIO * stay) & (v > self._anchor_min_votes)
-        if not movable.any():
+        dev, best = _anchor_vote(votes, peak_tdoa, peak_value, pred, pair_ok, self._pairs,
+                                 1.0 - self._half_s_beta, 1.0 / self._bin_s, self.min_peak_value,
+                                 self._anchor_gate_bins, REANCHOR_RATIO, self._anchor_min_votes)
+        if dev < 0:
             return False
-        dev = int(np.argmax(np.where(movable, v, -1.0)))   # one device at a time: the most votes, then fresh votes
         delta = np.zeros(self.n_devices)
-        delta[dev] = (best[dev] - c) * self._bin_s
+        delta[dev] = (best - c) * self._bin_s
         t.kalman.shift(delta - delta[0])
         votes[:] = 0.0
         self.n_reanchored += 1

@@ -479,11 +479,14 @@ class Aligner:
             valid = np.zeros(self.n_devices, dtype=bool)
             for d in range(self.n_devices):
                 start = k * hop + int(self.offsets_samples[d])
-                x = self._slice(d, start, start + hop)
-                if x is None:
+                b0 = self._buf_start[d]
+                buf = self._bufs[d].data
+                lo, hi = max(start, b0), min(start + hop, b0 + len(buf))   # what was received (zeros elsewhere)
+                if hi <= lo:
                     continue
-                samples[:, d] = x
-                covered = min(start + hop, self._received[d]) - max(start, self._buf_start[d], 0)
+                x = buf[lo - b0:hi - b0]
+                samples[lo - start:hi - start, d] = x
+                covered = min(start + hop, self._received[d]) - max(start, b0, 0)
                 rms = float(np.sqrt(np.dot(x, x) / hop))
                 valid[d] = bool((self.aligned[d] or d == 0) and covered >= hop // 2 and rms >= SILENCE_RMS)
             corrected = None

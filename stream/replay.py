@@ -74,6 +74,43 @@ def open_device_file(path: str | Path, *, name: str | None = None) -> tuple[sf.S
     return handle, info
 
 
+READ_AHEAD_S = 1.0   # each file is read this much at a time: a libsndfile call per 20 ms block costs more than
+#                      its samples' conversion
+
+
+class _ReadAhead:
+    """A file read in chunks of ``chunk`` samples and handed out block by block (fewer, larger libsndfile
+    calls). A read error ends the file after the samples read before it; :meth:`read` reports it once those are
+    handed out."""
+
+    def __init__(self, handle: sf.SoundFile, *, chunk: int) -> None:
+        self.handle = handle
+        self.chunk = max(1, int(chunk))
+        self._buf = np.zeros((0, max(1, handle.channels)), np.float32)
+        self._eof = False
+        self._error: Exception | None = None
+
+    def read(self, want: int) -> tuple[np.ndarray, Exception | None]:
+        """Up to ``want`` samples, shape (n, channels), float32; and the read error, once the samples before it
+        are all handed out (fewer than ``want`` samples: the file ended)."""
+        if len(self._buf) < want and not self._eof:
+            try:
+                data = self.handle.read(max(want - len(self._buf), self.chunk), dtype="float32", always_2d=True)
+            except (sf.LibsndfileError, RuntimeError) as err:
+                data, self._error = self._buf[:0], err
+            if len(data) < max(want - len(self._buf), self.chunk):
+                self._eof = True
+            self._buf = np.concatenate([self._buf, data]) if len(self._buf) else data
+        out, self._buf = self._buf[:want], self._buf[want:]
+        err = None
+        if len(out) < want and self._error is not None:
+            err, self._error = self._error, None
+        return out, err
+
+    def close(self) -> None:
+        self.handle.close()
+
+
 class ReplaySource:
     """Replays one recording per device as a live stream.
 
@@ -114,7 +151,7 @@ class ReplaySource:
         self._paths = [Path(p) for p in paths]
         self._names = list(names) if names is not None else None
         self.devices: list[DeviceInfo] = []
-        self._handles: list[sf.SoundFile] = []
+        self._handles: list[_ReadAhead] = []
         self.active: list[DeviceInfo] = []
         self._stop = False
 
@@ -153,7 +190,7 @@ class ReplaySource:
                     info.n_file_samples -= skip
                     info.duration_s = info.n_file_samples / info.sample_rate_hz
             if handle is not None:
-                self._handles.append(handle)
+                self._handles.append(_ReadAhead(handle, chunk=int(READ_AHEAD_S * info.sample_rate_hz)))
                 self.active.append(info)
 
     def close(self) -> None:
@@ -207,13 +244,11 @@ class ReplaySource:
                 stop = int(round((tick + 1) * self.block_s * rate))
                 want = stop - pos[d]
                 flags = FrameFlag.NONE
-                try:
-                    data = handle.read(want, dtype="float32", always_2d=True)
-                except (sf.LibsndfileError, RuntimeError) as err:
-                    data = np.zeros((0, max(1, info.n_file_channels)), np.float32)
+                data, err = handle.read(want)
+                if err is not None:
                     flags |= FrameFlag.TRUNCATED
-                    info.problem(f"Device '{info.name}': read error after {pos[d] / rate:.2f} s ({err}); "
-                                 "its stream ends there.")
+                    info.problem(f"Device '{info.name}': read error after {(pos[d] + len(data)) / rate:.2f} s "
+                                 f"({err}); its stream ends there.")
                 samples = data if data.shape[1] > 1 else data[:, 0]   # channels are mixed by the stream
                 last = len(samples) < want or pos[d] + len(samples) >= info.n_file_samples
                 if len(samples) < want and pos[d] + len(samples) < info.n_file_samples and not flags:

@@ -45,6 +45,7 @@ Backend = Literal["silero", "webrtc", "energy"]
 _WEBRTC_RATES = (8000, 16000, 32000, 48000)
 _VAD_FRAME_S = 0.01
 SILERO_MODEL = Path(__file__).resolve().parent / "models" / "silero_vad.onnx"
+SILERO_RATE_HZ = 16000      # the shipped export runs at 16 kHz only
 _SILERO_WINDOW = 512        # samples at 16 kHz (32 ms)
 _SILERO_CONTEXT = 64        # samples of the previous window the model sees
 _SILERO_ON, _SILERO_OFF = 0.5, 0.35
@@ -107,7 +108,7 @@ class SpeechPresence:
         self.hangover_s = float(hangover_s)
         self.quorum = float(quorum)
         if backend == "silero":
-            self.vad_rate_hz = 16000
+            self.vad_rate_hz = SILERO_RATE_HZ
             self.vad_frame_samples = _SILERO_WINDOW
         else:
             self.vad_rate_hz = int(sample_rate_hz) if (backend == "energy" or int(sample_rate_hz) in _WEBRTC_RATES
@@ -126,7 +127,7 @@ class SpeechPresence:
             opts.log_severity_level = 3
             self._session = ort.InferenceSession(str(SILERO_MODEL), sess_options=opts,
                                                  providers=["CPUExecutionProvider"])
-            self._sr = np.array(16000, dtype=np.int64)
+            self._sr = np.array(SILERO_RATE_HZ, dtype=np.int64)
         self.reset()
 
     def reset(self) -> None:
@@ -134,11 +135,11 @@ class SpeechPresence:
         self._buffer = np.zeros((self.n_devices, 4 * self.vad_frame_samples + 8 * self.hop_samples), np.float32)
         self._fill = np.zeros(self.n_devices, np.int64)
         self._held = np.zeros(self.n_devices, np.int64)     # VAD frames the current decision is still held
-        self._resamplers = None
+        self._resampler = None
         if self.vad_rate_hz != int(self.sample_rate_hz) or self.sample_rate_hz != int(self.sample_rate_hz):
             import soxr
-            self._resamplers = [soxr.ResampleStream(self.sample_rate_hz, self.vad_rate_hz, 1, dtype="float32")
-                                for _ in range(self.n_devices)]
+            self._resampler = soxr.ResampleStream(self.sample_rate_hz, self.vad_rate_hz, self.n_devices,
+                                                  dtype="float32")
         n_floor = max(1, int(round(1.5 / _VAD_FRAME_S)))
         self._energy_hist = np.full((self.n_devices, n_floor), np.inf)
         self._energy_pos = 0
@@ -166,12 +167,12 @@ class SpeechPresence:
             x = np.nan_to_num(x, nan=0.0, posinf=0.0, neginf=0.0)
         usable = np.ones(self.n_devices, bool) if valid is None else np.asarray(valid, bool)
         frame = self.vad_frame_samples
+        if self._resampler is not None:   # every device at once: (n, n_devices) at the VAD's rate
+            x = self._resampler.resample_chunk(np.ascontiguousarray(x))
         if self.backend == "silero":
             return self._combine(self._process_silero(x), usable)
         for d in range(self.n_devices):
             col = x[:, d]
-            if self._resamplers is not None:
-                col = self._resamplers[d].resample_chunk(np.ascontiguousarray(col))
             n0 = int(self._fill[d])
             buf = self._buffer[d]
             if n0 + len(col) > len(buf):   # never for the hop sizes the engine uses; keep the newest frames
@@ -199,19 +200,16 @@ class SpeechPresence:
         return SpeechFrame(p, device_p)
 
     def _process_silero(self, x: np.ndarray) -> np.ndarray:
-        """Buffer the hop (resampled to 16 kHz) of every device; run each complete 32 ms window of all devices
+        """Buffer the hop (at the model's rate) of every device; run each complete 32 ms window of all devices
         in one batched model call; return which devices are speaking (hysteresis, then hangover)."""
         frame = self.vad_frame_samples
-        cols = [x[:, d] if self._resamplers is None
-                else self._resamplers[d].resample_chunk(np.ascontiguousarray(x[:, d])) for d in range(self.n_devices)]
-        n_new = min(len(c) for c in cols)     # the same for every device (same rate, same hop)
+        n_new = len(x)
         n0 = int(self._fill[0])
         if n0 + n_new > self._buffer.shape[1]:
             keep = (self._buffer.shape[1] - n_new) // frame * frame
             self._buffer[:, :keep] = self._buffer[:, n0 - keep:n0]
             n0 = keep
-        for d, c in enumerate(cols):
-            self._buffer[d, n0:n0 + n_new] = c[:n_new]
+        self._buffer[:, n0:n0 + n_new] = x.T
         n = n0 + n_new
         start = 0
         inp = self._silero_input

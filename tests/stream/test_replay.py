@@ -187,3 +187,29 @@ def test_speed_paces_the_replay(make_devices, tmp_path):
     t0 = time.monotonic()
     run_replay(paths, tmp_path / "o", config=_cfg(speed=4.0))
     assert time.monotonic() - t0 >= 2.0 / 4.0 * 0.9
+
+
+@pytest.mark.parametrize("block_s", [0.02, 0.37, 2.5])
+def test_frames_hold_every_sample_of_the_file_once(tmp_path, block_s):
+    """The files are read a second at a time and handed out block by block: whatever the block length, the
+    frames of each device put together are its file, and a truncated file gives every sample libsndfile reads
+    before it ends (libsndfile counts the samples there are, not the header's claim)."""
+    from stream.messages import FrameFlag
+    rng = np.random.default_rng(3)
+    whole = (0.1 * rng.standard_normal((int(3.3 * 16000), 2))).astype(np.float32)
+    sf.write(tmp_path / "a.wav", whole, 16000, subtype="FLOAT")
+    sf.write(tmp_path / "b.wav", whole[:, 0], 16000, subtype="PCM_16")
+    data = (tmp_path / "b.wav").read_bytes()
+    (tmp_path / "c.wav").write_bytes(data[: len(data) // 2])   # the header still claims the full length
+    with ReplaySource([tmp_path / "a.wav", tmp_path / "b.wav", tmp_path / "c.wav"], block_s=block_s) as src:
+        frames = list(src)
+    got = {d: [f for f in frames if f.device_id == d] for d in range(3)}
+    assert all(f.first_sample == sum(len(g.samples) for g in got[f.device_id][:k])
+               for d in got for k, f in enumerate(got[d]))
+    np.testing.assert_array_equal(np.concatenate([f.samples for f in got[0]]), whole)
+    expected_b, _ = sf.read(tmp_path / "b.wav", dtype="float32")
+    np.testing.assert_array_equal(np.concatenate([f.samples for f in got[1]]), expected_b)
+    readable, _ = sf.read(tmp_path / "c.wav", dtype="float32")
+    np.testing.assert_array_equal(np.concatenate([f.samples for f in got[2]]), readable)
+    assert all(f.flags == FrameFlag.LAST for f in (got[0][-1], got[1][-1], got[2][-1]))
+    assert not any(f.flags for d in got for f in got[d][:-1])
