@@ -46,8 +46,8 @@ N best GCC-PHAT peaks of every pair (:class:`estimators.multipeak.NoiseAwareGcc`
   scores low) and switches when another's activity exceeds the steered one's by ``switch_ratio``;
   ``"nearest"`` steers at the speech track heard earliest by device ``target_device`` relative to the mean
   of all devices (clock offsets cancel between tracks), among tracks with a hit in the last
-  ``forget_after_s``. With no confirmed speech track nothing is steered (the caller outputs the reference
-  device).
+  ``forget_after_s``. With no confirmed speech track nothing is steered (the caller outputs the average of the
+  devices at their coarse alignment, or the reference device where a noise track sits there).
 
 On non-speech frames every track only predicts: no update and no birth comes from a frame without speech.
 Units: seconds throughout; TOA vectors relative to device 0 (``toa[0] = 0``), as :mod:`estimators.conventions`.
@@ -304,8 +304,13 @@ class SourceTracker:
 
     @property
     def steered_id(self) -> int:
-        """Id of the steered track, -1 when none (the output is then the reference device)."""
+        """Id of the steered track, -1 when none (the output is then the devices' average at the coarse alignment,
+        or the reference device where that average would point at a noise track: :meth:`noise_at`)."""
         return -1 if self.steered is None else self.steered.track_id
+
+    def noise_at(self, toa_s: np.ndarray, tol_s: float = 2.5e-4) -> bool:
+        """Whether a tracked noise source sits at the relative TOA ``toa_s`` (every device within ``tol_s``)."""
+        return any(t.kind == "noise" and float(np.max(np.abs(t.toa_s - toa_s))) <= tol_s for t in self.tracks)
 
     def report(self) -> dict:
         """Tracks (alive and ended), switches and counters, for ``report.json``."""

@@ -368,7 +368,10 @@ class Pipeline:
                     h["kind"] = t.kind
                     h["time_s"].append(time_s)
                     h["toa_s"].append(coarse + t.toa_s)
-            if track_id < 0:   # no talker tracked: the output is the reference device, not a beam at the noise
+            if track_id < 0 and self.tracker.noise_at(fine):
+                # no talker tracked, and the devices' average at the coarse alignment would point at a tracked
+                # noise source: the output is the reference device, not a beam at the noise (otherwise the
+                # average: no louder than one device, with less of the room's reverberation and sensor noise)
                 valid = self._reference_only
                 valid[:] = False
                 valid[int(np.argmax(block.valid))] = True

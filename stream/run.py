@@ -387,10 +387,12 @@ def _finalise(report, out, cfg, pipeline, fixture, names, collector, t_wall0, t_
                                           if pipeline.state.speech_probability else 0.0}
             note = None
             if sources["n_speech_frames"] == 0:
-                note = ("No speech was detected in the whole stream; the output is the reference device "
-                        "(no beam is steered at a noise source).")
+                note = ("No speech was detected in the whole stream; the output is the average of the aligned "
+                        "devices, or the reference device where that average would point at a noise source.")
             elif not any(t["kind"] == "speech" for t in sources["tracks"]):
-                note = "Speech was detected but no talker could be tracked; the output is the reference device."
+                note = ("Speech was detected but no talker could be tracked; the output is the average of the "
+                        "aligned devices, or the reference device where that average would point at a noise "
+                        "source.")
             if note is not None:   # the run's log collector is already detached here
                 log.warning(note)
                 collector.messages.append(note)

@@ -161,3 +161,31 @@ def test_two_talkers_taking_turns_the_beam_follows_each_turn(tmp_path):
     for c in np.flatnonzero(np.diff(active) != 0) + 1:
         run = np.convolve(on[c:].astype(int), np.ones(5, int), "valid")   # 5 frames on the new talker
         assert (run == 5).any() and np.argmax(run == 5) * hop_s < 1.0, (time_s[c], np.argmax(run == 5) * hop_s)
+
+
+def test_without_a_talker_or_a_noise_source_the_output_is_the_devices_average(tmp_path):
+    """No talker and no point noise source (bursts of diffuse noise: the same rhythm at every device, unrelated
+    waveforms): the output is the average of the aligned devices, so the noise heard is about 1 / M of one
+    device's; where a tracked noise source would be beamed at, it is the reference device (the test above)."""
+    fs, n_dev, dur = 16000, 4, 6.0
+    rng = np.random.default_rng(11)
+    t = np.arange(int(dur * fs)) / fs
+    rhythm = (np.sin(2 * np.pi * 1.3 * t) > 0.2) * 0.9 + 0.1   # loud / quiet: the envelope the aligner uses
+    paths = []
+    for d, lead in enumerate((0, 900, 2500, 4100)):
+        x = (0.05 * rhythm * rng.standard_normal(len(t)))[lead:].astype(np.float32)
+        paths.append(tmp_path / f"d{d}.wav")
+        sf.write(paths[-1], x, fs, subtype="FLOAT")
+    out = tmp_path / "o"
+    outcome = run_replay(paths, out, config=EngineConfig(estimator="tracks", **FAST))
+    s = outcome.pipeline.state
+    report = json.loads((out / "report.json").read_text())
+    assert not any(t["kind"] in ("speech", "noise") for t in report["sources"]["tracks"])
+    assert set(s.track_id) == {-1}
+    assert all(report["stream"]["aligned"])
+    w = np.vstack(s.weights)[np.vstack(s.valid).all(axis=1)]
+    assert len(w) > 200 and np.allclose(w, 1.0 / n_dev, atol=1e-6)
+    y, _ = sf.read(out / "enhanced.wav", dtype="float32")
+    x0, _ = sf.read(paths[0], dtype="float32")
+    quiet = np.mean(y[fs:-fs] ** 2) / np.mean(x0[fs:len(y) - fs] ** 2)
+    assert 0.5 / n_dev < quiet < 2.0 / n_dev, quiet
