@@ -337,3 +337,28 @@ def test_the_aggregator_publishes_toa_enhanced_audio_and_geometry():
     back = Geometry.from_dict(json.loads(got["geometry"][0]))
     np.testing.assert_array_equal(back.drifts_ppm, [0.0, 3.5])
     assert tuple(back.device_names) == ("p0", "p1") and back.verdict == "converged"
+
+
+def test_a_reference_that_never_comes_does_not_hold_the_stream(procs, tmp_path):
+    """The first expected device (the reference) never starts: once discovery ends the first expected device
+    that is there takes its place, says so in one sentence, and the outputs cover the audio streamed."""
+    port, out = _port(), tmp_path / "agg"
+    ep = f"tcp/127.0.0.1:{port}"
+    agg = _spawn(procs, "aggregate", "--out", out, "--listen", ep, "--no-scouting", "--array", "t6",
+                 "--expect", "phone0,phone1,phone2", "--until-done", "--discover-s", 3, "--no-plots")
+    for k in (1, 2):
+        _device(procs, k, "t6", "--connect", ep)
+    stdout, stderr = _finish(agg, 60)
+    assert agg.returncode == 0, stderr[-3000:]
+    rep = _report(out)
+    assert rep["status"] == "ok"
+    assert [d["name"] for d in rep["devices"]][:2] == ["phone1", "phone0"], rep["devices"]
+    assert ("The reference device 'phone0' was not present when the stream started; 'phone1' is the reference "
+            "instead, and 'phone0' joins like any late device.") in rep["messages"], rep["messages"]
+    n_ref = sf.info(FX / "dev01.flac").frames
+    y, rate = sf.read(out / "enhanced.wav")
+    assert rate == RATE and abs(len(y) - n_ref) < 0.2 * RATE, (len(y), n_ref)
+    # phone2 was aligned on phone1's audio, and the output is sound, not the absent reference's concealed zeros
+    assert rep["stream"]["aligned"][:3] == [True, False, True], rep["stream"]["aligned"]
+    x1 = sf.read(FX / "dev01.flac")[0]
+    assert np.std(y) > 0.3 * np.std(x1), (np.std(y), np.std(x1))
