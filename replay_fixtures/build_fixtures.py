@@ -515,14 +515,15 @@ def _noise_signal(scene: Scene, data: Path, n: int) -> np.ndarray:
     return x / np.sqrt(np.mean(x ** 2))
 
 
-TRUTH_VERSION = 2   # bump when the truth tables a build writes change (caches rebuild)
+TRUTH_VERSION = 3   # bump when the truth tables a build writes change (caches rebuild)
 
 
 def speech_activity(dry: np.ndarray, fs: int, *, frame_s: float = 0.01, floor_db: float = -40.0,
-                    above_background_db: float = 15.0, fill_s: float = 0.2) -> np.ndarray:
+                    above_background_db: float = 15.0, min_run_s: float = 0.05, fill_s: float = 0.2) -> np.ndarray:
     """Per-sample activity (bool) of a dry talker: 10 ms frames within ``floor_db`` of the loudest frame and
     at least ``above_background_db`` above the recording's own background (the 10th percentile of the frames
     that are not digital silence: a corpus file's breath and room hum before the first word is no speech),
+    in runs of at least ``min_run_s`` (a syllable; the room hum crosses the threshold in lone 10-30 ms frames),
     gaps shorter than ``fill_s`` filled (pauses between words are not turn ends)."""
     h = int(round(frame_s * fs))
     n_f = len(dry) // h
@@ -530,6 +531,11 @@ def speech_activity(dry: np.ndarray, fs: int, *, frame_s: float = 0.01, floor_db
     sound = p[p > 1e-12 * max(p.max(), 1e-300)]
     background = np.percentile(sound, 10) if len(sound) else 0.0
     on = (p >= p.max() * 10 ** (floor_db / 10)) & (p >= background * 10 ** (above_background_db / 10))
+    edges = np.flatnonzero(np.diff(np.r_[0, on.astype(np.int8), 0]))
+    min_run = int(round(min_run_s / frame_s))
+    for a, b in zip(edges[::2], edges[1::2]):
+        if b - a < min_run:
+            on[a:b] = False
     idx = np.flatnonzero(on)
     fill = int(round(fill_s / frame_s))
     for a, b in zip(idx[:-1], idx[1:]):

@@ -333,3 +333,24 @@ def test_missing_device_file(tmp_path):
 
 def test_fixture_error_is_value_error():
     assert issubclass(FixtureError, ValueError)
+
+
+def test_speech_activity_ignores_lone_frames_of_room_hum():
+    """The truth's speech activity: words (runs of 50 ms and more, 15 dB above the recording's own background)
+    with the short pauses between them filled; a lone 20 ms crackle of the room hum 17 dB above it is no word
+    (in a two-talker scene such frames opened a turn 3 s before the talker's first word)."""
+    import sys
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "replay_fixtures"))
+    from build_fixtures import speech_activity
+    fs = 16000
+    rng = np.random.default_rng(1)
+    x = 10 ** (-35 / 20) * rng.standard_normal(4 * fs)                      # room hum
+    x[int(0.5 * fs):int(0.52 * fs)] *= 10 ** (17 / 20)                       # a lone crackle
+    for a, b in ((2.0, 2.4), (2.5, 2.9)):                                    # two words, 0.1 s apart
+        i, j = round(a * fs), round(b * fs)
+        x[i:j] = 0.3 * np.sin(2 * np.pi * 220 * np.arange(j - i) / fs)
+    act = speech_activity(x, fs)
+    on = np.flatnonzero(act)
+    assert not act[int(0.45 * fs):int(0.6 * fs)].any()
+    assert abs(on[0] / fs - 2.0) < 0.011 and abs(on[-1] / fs - 2.9) < 0.011
+    assert act[int(2.4 * fs):int(2.5 * fs)].all()                            # the pause between words
