@@ -33,6 +33,9 @@ N best GCC-PHAT peaks of every pair (:class:`estimators.multipeak.NoiseAwareGcc`
   right shows up as every pair of that device peaking at one other TOA for it; the peaks' votes (decaying over
   about half a second of speech frames) move that device there when they outweigh staying ``REANCHOR_RATIO``
   to one (``n_reanchored`` in the report).
+- **Take-over** (``"active-talker"``): a talker track confirmed within ``TAKEOVER_S`` (every device) of the
+  steered track is the steered talker where it is now (a walking talker outruns a track's capped gate); the
+  steered track takes its state and the beam follows at once (``n_taken_over`` in the report).
 - **Ghosts**: two talker tracks hit in the same speech frames (over the last half second) are one talker; the
   weaker of the two in those frames (matched peak heights summed over the pairs) is a side lobe of its voice
   (GCC-PHAT of voiced speech peaks again near multiples of the pitch period) or a reflection, and is removed
@@ -71,6 +74,7 @@ GHOST_MEMORY_S = 3.0              # a removed ghost is not born again at the sam
 REANCHOR_RATIO = 2.0              # votes for moving one device of the steered track against staying
 MAX_DRIFT_RATE_S_PER_S = 2.5e-4   # relative TOA rate two clocks at +-100 ppm (and some margin) can give
 TargetPolicy = Literal["active-talker", "nearest"]
+TAKEOVER_S = 1e-3                 # a new talker track this close to the steered one (every device) is its talker
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
@@ -267,6 +271,7 @@ class SourceTracker:
             self.n_speech_frames = 0
             self.n_births = 0
             self.n_reanchored = 0
+            self.n_taken_over = 0
             self._next_id = 0
             self._last_time_s = 0.0
         else:
@@ -317,7 +322,7 @@ class SourceTracker:
         return {"target": self.target if self.target != "nearest" else f"nearest {self.target_device}",
                 "n_frames": self.n_frames, "n_speech_frames": self.n_speech_frames, "n_births": self.n_births,
                 "speech_s": round(self.n_speech_frames * self.frame_period_s, 3),
-                "n_reanchored": self.n_reanchored,
+                "n_reanchored": self.n_reanchored, "n_taken_over": self.n_taken_over,
                 "tracks": [t.summary() for t in sorted(self.ended + self.tracks, key=lambda t: t.track_id)
                            if t.kind != "tentative" or t.n_hits >= self.confirm_hits],
                 "switches": self.switches}
@@ -439,6 +444,8 @@ class SourceTracker:
             t.hit_now = hit
             t.hit_value = value if hit else 0.0
         self._ghosts(time_s)
+        if self.target == "active-talker":
+            self._take_over(time_s)
         self._used = used
         return hit_any
 
@@ -464,6 +471,24 @@ class SourceTracker:
         votes[:] = 0.0
         self.n_reanchored += 1
         return True
+
+    def _take_over(self, time_s: float) -> None:
+        """A talker track confirmed in this frame within ``TAKEOVER_S`` of the steered track on every device is
+        the steered talker where it is now (a walking talker outruns a track's capped gate, and a new track is
+        born from the peaks the old one no longer reaches): the steered track takes the new one's state, and
+        the beam follows without waiting for the new track to become the more active (``n_taken_over``)."""
+        st = self.steered
+        if st is None or st.kind != "speech":
+            return
+        for t in self.tracks:
+            if t is not st and t.kind == "speech" and t.confirmed_s == time_s \
+                    and float(np.max(np.abs(t.toa_s - st.toa_s))) <= TAKEOVER_S:
+                st.kalman._kf.x[:] = t.kalman._kf.x
+                st.kalman._kf.P[:] = t.kalman._kf.P
+                st.last_hit_s = time_s
+                self.n_taken_over += 1
+                self._end(t, time_s, f"taken over by the steered track {st.track_id} (its talker, moved)")
+                return
 
     def _ghosts(self, time_s: float) -> None:
         """Two talker tracks heard in the same speech frames (over the last half second) are one talker: the

@@ -228,3 +228,24 @@ def test_one_device_on_a_reflection_is_moved_back_to_the_talker():
     assert np.max(np.abs(tr.steered_toa_s - TALKER_A)) < 2.5e-4
     rep = tr.report()
     assert rep["n_reanchored"] >= 1 and len(rep["switches"]) == 1   # the same track, moved, not a new one
+
+
+def test_a_talker_who_moved_is_taken_over_by_the_steered_track():
+    """A talks for 4 s (the track is old: its gate is capped at 0.5 ms), pauses, and speaks again 0.8 ms away on
+    device 1 (leaned over, or walked): the old track cannot reach the new peaks, a new track is born there, and
+    the steered track takes it over at its confirmation: the beam follows at once, with no switch."""
+    rng = np.random.default_rng(3)
+    tr = _tracker()
+    t = 0.0
+    moved = TALKER_A + np.array([0.0, 8e-4, 0.0, 0.0, 0.0])
+    for dur, sources, p in ((4.0, [(TALKER_A, 0.5)], 1.0), (0.5, [], 0.0), (1.0, [(moved, 0.5)], 1.0)):
+        for _ in range(int(dur / DT)):
+            tdoa, value = _peaks(sources, rng)
+            tr.update(tdoa, value, speech_probability=p, usable=USABLE, time_s=t)
+            t += DT
+    first = tr.switches[0]["to"]
+    assert [s["to"] for s in tr.switches] == [first]                  # never switched
+    assert tr.steered_id == first and tr.n_taken_over >= 1
+    assert np.max(np.abs(tr.steered_toa_s - moved)) < 2.5e-4
+    assert any(e.death_reason.startswith(f"taken over by the steered track {first}") for e in tr.ended)
+    assert tr.report()["n_taken_over"] == tr.n_taken_over
