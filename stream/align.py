@@ -425,15 +425,21 @@ class Aligner:
                  old + int(delta_samples), reason)
 
     # output ----------------------------------------------------------------------------------
-    def _slice(self, d: int, start: int, stop: int) -> np.ndarray | None:
-        """Device samples [start, stop) (zeros outside what was received), None if none is there."""
+    def _held_part(self, d: int, start: int, stop: int) -> tuple[int, np.ndarray] | None:
+        """The part of device samples [start, stop) that was received: (its offset from ``start``, a view of the
+        buffer), None if none is there."""
         b0 = self._buf_start[d]
         buf = self._bufs[d].data
         lo, hi = max(start, b0), min(stop, b0 + len(buf))
-        if hi <= lo:
+        return None if hi <= lo else (lo - start, buf[lo - b0:hi - b0])
+
+    def _slice(self, d: int, start: int, stop: int) -> np.ndarray | None:
+        """Device samples [start, stop) (zeros outside what was received), None if none is there."""
+        part = self._held_part(d, start, stop)
+        if part is None:
             return None
         out = np.zeros(stop - start, np.float32)
-        out[lo - start:hi - start] = buf[lo - b0:hi - b0]
+        out[part[0]:part[0] + len(part[1])] = part[1]
         return out
 
     def _end_block(self) -> int:
@@ -479,14 +485,12 @@ class Aligner:
             valid = np.zeros(self.n_devices, dtype=bool)
             for d in range(self.n_devices):
                 start = k * hop + int(self.offsets_samples[d])
-                b0 = self._buf_start[d]
-                buf = self._bufs[d].data
-                lo, hi = max(start, b0), min(start + hop, b0 + len(buf))   # what was received (zeros elsewhere)
-                if hi <= lo:
+                part = self._held_part(d, start, start + hop)   # written in place: zeros elsewhere
+                if part is None:
                     continue
-                x = buf[lo - b0:hi - b0]
-                samples[lo - start:hi - start, d] = x
-                covered = min(start + hop, self._received[d]) - max(start, b0, 0)
+                at, x = part
+                samples[at:at + len(x), d] = x
+                covered = min(start + hop, self._received[d]) - max(start, self._buf_start[d], 0)
                 rms = float(np.sqrt(np.dot(x, x) / hop))
                 valid[d] = bool((self.aligned[d] or d == 0) and covered >= hop // 2 and rms >= SILENCE_RMS)
             corrected = None

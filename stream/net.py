@@ -465,7 +465,8 @@ class NetSource:
         Device names that form the array, in order (the first is the reference); the stream starts once
         they are all present or ``discover_s`` has passed. Without it: every device present after
         ``discover_s`` (at least one), by name. When the first is not present at the start, the first expected
-        device that is becomes the reference (``reference_note`` says so), so that the outputs never wait for it.
+        device that is becomes the reference (one sentence in the log and the report), so that the outputs never
+        wait for it.
     discover_s : float
         Longest wait for devices before the stream starts.
     jitter_s : float
@@ -499,7 +500,6 @@ class NetSource:
         self.gone_done_s = 5.0
         self.max_duration_s = max_duration_s
         self.devices: list[NetDevice] = []
-        self.reference_note = ""     # one sentence when the first expected device was absent at the start
         self.active: list[NetDevice] = []
         self._session = session
         self._own_session = session is None
@@ -626,10 +626,8 @@ class NetSource:
             first = next(n for n in names if n in present)
             names.remove(first)
             names.insert(0, first)
-            self.reference_note = (f"The reference device '{self.expect[0]}' was not present when the stream "
-                                   f"started; '{first}' is the reference instead, and '{self.expect[0]}' joins "
-                                   "like any late device.")
-            log.warning("%s", self.reference_note)
+            log.warning("The reference device '%s' was not present when the stream started; '%s' is the reference "
+                        "instead, and '%s' joins like any late device.", self.expect[0], first, self.expect[0])
         for name in names:
             dev = NetDevice(name=name, path=f"zenoh:{self.keys.audio(name)}", key=self.keys.audio(name))
             self.devices.append(dev)

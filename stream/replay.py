@@ -74,8 +74,8 @@ def open_device_file(path: str | Path, *, name: str | None = None) -> tuple[sf.S
     return handle, info
 
 
-READ_AHEAD_S = 1.0   # each file is read this much at a time: a libsndfile call per 20 ms block costs more than
-#                      its samples' conversion
+READ_AHEAD_S = 1.0   # each file is read this much at a time: a libsndfile call per block (50 ms by default) cost
+#                      more than converting its samples
 
 
 class _ReadAhead:
@@ -94,12 +94,12 @@ class _ReadAhead:
         """Up to ``want`` samples, shape (n, channels), float32; and the read error, once the samples before it
         are all handed out (fewer than ``want`` samples: the file ended)."""
         if len(self._buf) < want and not self._eof:
+            n = max(want - len(self._buf), self.chunk)
             try:
-                data = self.handle.read(max(want - len(self._buf), self.chunk), dtype="float32", always_2d=True)
+                data = self.handle.read(n, dtype="float32", always_2d=True)
             except (sf.LibsndfileError, RuntimeError) as err:
                 data, self._error = self._buf[:0], err
-            if len(data) < max(want - len(self._buf), self.chunk):
-                self._eof = True
+            self._eof = len(data) < n
             self._buf = np.concatenate([self._buf, data]) if len(self._buf) else data
         out, self._buf = self._buf[:want], self._buf[want:]
         err = None

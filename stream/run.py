@@ -30,6 +30,9 @@ log = logging.getLogger(__name__)
 
 KEEP_INPUT_MAX_S = 600.0   # every per-frame record and the aligned input are kept (for scoring) only up to this
 HISTORY_CAP = 20_000       # longer and live streams keep at most this many per-frame records (report, plots)
+# how a report's sentence ends when the tracker found no talker: what the output was instead
+NO_TALKER_OUTPUT = ("the output is the average of the aligned devices, or the reference device where that average "
+                    "would point at a noise source.")
 
 
 @dataclass
@@ -387,12 +390,9 @@ def _finalise(report, out, cfg, pipeline, fixture, names, collector, t_wall0, t_
                                           if pipeline.state.speech_probability else 0.0}
             note = None
             if sources["n_speech_frames"] == 0:
-                note = ("No speech was detected in the whole stream; the output is the average of the aligned "
-                        "devices, or the reference device where that average would point at a noise source.")
+                note = f"No speech was detected in the whole stream; {NO_TALKER_OUTPUT}"
             elif not any(t["kind"] == "speech" for t in sources["tracks"]):
-                note = ("Speech was detected but no talker could be tracked; the output is the average of the "
-                        "aligned devices, or the reference device where that average would point at a noise "
-                        "source.")
+                note = f"Speech was detected but no talker could be tracked; {NO_TALKER_OUTPUT}"
             if note is not None:   # the run's log collector is already detached here
                 log.warning(note)
                 collector.messages.append(note)
