@@ -70,14 +70,15 @@ def _top_peaks(row, max_lag, rate_hz, out_tdoa, out_value):
         out_tdoa[q] = 0.0
         out_value[q] = 0.0
     n_found = 0
+    thr = 0.0   # a lag must be above this to enter: 0, then the lowest value kept once the list is full
     for lag in range(-max_lag, max_lag + 1):
         k = lag + n_fft if lag < 0 else lag
         r0 = np.float64(row[k])
-        if n_found == k_best and r0 <= out_value[k_best - 1]:
+        if r0 <= thr:
             continue
         rm = np.float64(row[k - 1 if k > 0 else n_fft - 1])
         rp = np.float64(row[k + 1 if k < n_fft - 1 else 0])
-        if not (r0 >= rm and r0 > rp) or r0 <= 0.0:
+        if not (r0 >= rm and r0 > rp):
             continue
         den = rm - 2.0 * r0 + rp
         d = 0.0
@@ -95,6 +96,8 @@ def _top_peaks(row, max_lag, rate_hz, out_tdoa, out_value):
         out_tdoa[q] = t
         if n_found < k_best:
             n_found += 1
+        if n_found == k_best:
+            thr = out_value[k_best - 1]
 
 
 @_jit
@@ -120,15 +123,26 @@ def _pair_spectrum(xi, xj, oi, oj, phi, sm, g, scratch, a, b, mode, update, phi_
     at 0). ``scratch`` (>= n_bins floats) holds |G|^2."""
     n_bins = xi.shape[0]
     peak2 = np.float32(0.0)
-    for k in range(n_bins):
-        c = xi[k] * xj[k].conjugate()
-        sm[k] += b * (c - sm[k])
-        r = c if mode == 0 else sm[k] - phi_scale * phi[k]
-        g[k] = r
-        m2 = r.real * r.real + r.imag * r.imag
-        scratch[k] = m2
-        peak2 = m2 if m2 > peak2 else peak2
-    if update:
+    if b == 1.0:   # no short-time average (the engine's setting): this frame's cross spectrum
+        for k in range(n_bins):
+            c = xi[k] * xj[k].conjugate()
+            if mode == 2:
+                sm[k] = c
+            r = c if mode == 0 else c - phi_scale * phi[k]
+            g[k] = r
+            m2 = r.real * r.real + r.imag * r.imag
+            scratch[k] = m2
+            peak2 = m2 if m2 > peak2 else peak2
+    else:
+        for k in range(n_bins):
+            c = xi[k] * xj[k].conjugate()
+            sm[k] += b * (c - sm[k])
+            r = c if mode == 0 else sm[k] - phi_scale * phi[k]
+            g[k] = r
+            m2 = r.real * r.real + r.imag * r.imag
+            scratch[k] = m2
+            peak2 = m2 if m2 > peak2 else peak2
+    if update and a != 0.0:   # a = 0 on speech frames: the average stays as it is
         for k in range(n_bins):
             c = oi[k] * oj[k].conjugate()
             phi[k] += a * (c - phi[k])

@@ -114,6 +114,91 @@ def _anchor_vote(votes, peak_tdoa, peak_value, pred, pair_ok, pair_idx, decay, i
     return dev, dev_bin
 
 
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _predict_gate(x, P, H0, dt, gate_min, gate_max, young, pred, gate):
+    """:meth:`SourceTracker._predicted`, compiled: ``pred = H0 (toa + dt rate)`` and the gate half-widths
+    ``max(3 sqrt(h P h^T), gate_min)``, capped at ``gate_max`` unless the track is ``young`` and the gate is
+    over four times the cap."""
+    n_pairs, m = H0.shape
+    for p in range(n_pairs):
+        acc = 0.0
+        var = 0.0
+        for a in range(m):
+            ha = H0[p, a]
+            if ha == 0.0:
+                continue
+            acc += ha * (x[a] + dt * x[m + a])
+            for b in range(m):
+                var += ha * P[a, b] * H0[p, b]
+        pred[p] = acc
+        g = max(3.0 * np.sqrt(max(var, 0.0)), gate_min)
+        if g <= 4.0 * gate_max or not young:
+            g = min(g, gate_max)
+        gate[p] = g
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _pick_peaks(peak_tdoa, peak_value, pred, gate, used, pair_ok, min_peak, k_out, took):
+    """Per pair, the unused peak (height at least ``min_peak``) nearest ``pred`` within ``gate``: its index
+    into ``k_out`` (0 where none) and ``took``. Returns the number of pairs that took one."""
+    n_took = 0
+    for p in range(peak_tdoa.shape[0]):
+        best, best_d = 0, np.inf
+        if pair_ok[p]:
+            for k in range(peak_tdoa.shape[1]):
+                d = abs(peak_tdoa[p, k] - pred[p])
+                if d <= gate[p] and peak_value[p, k] >= min_peak and not used[p, k] and d < best_d:
+                    best, best_d = k, d
+        k_out[p] = best
+        took[p] = best_d < np.inf
+        n_took += took[p]
+    return n_took
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _solve_pairs(H0, tdoa, keep, out):
+    """Least squares ``H0[keep] toa = tdoa[keep]`` through the normal equations (Cholesky of the 
+    ``(M-1) x (M-1)`` matrix ``H0[keep]^T H0[keep]``, which is regular when the kept pairs connect every device
+    to device 0). Returns False, leaving ``out`` undefined, when it is not."""
+    n_pairs, m = H0.shape
+    A = np.zeros((m, m))
+    b = np.zeros(m)
+    for p in range(n_pairs):
+        if not keep[p]:
+            continue
+        for i in range(m):
+            hi = H0[p, i]
+            if hi == 0.0:
+                continue
+            b[i] += hi * tdoa[p]
+            for j in range(m):
+                A[i, j] += hi * H0[p, j]
+    L = np.zeros((m, m))
+    for j in range(m):
+        d = A[j, j]
+        for k in range(j):
+            d -= L[j, k] * L[j, k]
+        if d <= 1e-9:
+            return False
+        L[j, j] = np.sqrt(d)
+        for i in range(j + 1, m):
+            v = A[i, j]
+            for k in range(j):
+                v -= L[i, k] * L[j, k]
+            L[i, j] = v / L[j, j]
+    for i in range(m):   # L y = b, then L^T out = y
+        v = b[i]
+        for k in range(i):
+            v -= L[i, k] * out[k]
+        out[i] = v / L[i, i]
+    for i in range(m - 1, -1, -1):
+        v = out[i]
+        for k in range(i + 1, m):
+            v -= L[k, i] * out[k]
+        out[i] = v / L[i, i]
+    return True
+
+
 @dataclass
 class Track:
     """One tracked source: its filter, label and running statistics (times in stream seconds)."""
@@ -386,18 +471,13 @@ class SourceTracker:
     def _predicted(self, t: Track) -> tuple[np.ndarray, np.ndarray]:
         """Predicted pair TDOAs (n_pairs,) and their gate half-widths (n_pairs,), seconds."""
         kf = t.kalman._kf
-        m = self.n_devices - 1
-        x = kf.x
-        toa = x[:m] + self.frame_period_s * x[m:]
-        P = kf.P[:m, :m]
-        var = np.einsum("ij,jk,ik->i", self._H0, P, self._H0)
-        gate = np.maximum(3.0 * np.sqrt(np.maximum(var, 0.0)), self.gate_min_s)
+        pred, gate = np.empty(self.n_pairs), np.empty(self.n_pairs)
         # the cap keeps a tracked source from wandering onto clutter; in a young track a device it has not
         # pinned down yet (its spread is far wider) keeps its whole gate, so that it can be picked up or
         # corrected; later a wide spread means the track went unhit for long, and it must not jump
-        young = self._time_s - t.born_s < self.young_s
-        gate = np.where((gate <= 4 * self.gate_max_s) | (not young), np.minimum(gate, self.gate_max_s), gate)
-        return self._H0 @ toa, gate
+        _predict_gate(kf.x, kf.P, self._H0, self.frame_period_s, self.gate_min_s, self.gate_max_s,
+                      self._time_s - t.born_s < self.young_s, pred, gate)
+        return pred, gate
 
     def _associate(self, peak_tdoa, peak_value, pair_ok, n_ok, time_s) -> bool:
         used = np.zeros(peak_value.shape, bool)
@@ -405,17 +485,15 @@ class SourceTracker:
         order = sorted(self.tracks, key=lambda t: (t.kind == "tentative", -t.activity))
         hit_any = False
         min_pairs = max(2, int(math.ceil(self.min_pair_fraction * n_ok)))
+        k, picked = np.empty(self.n_pairs, np.int64), np.empty(self.n_pairs, bool)
         for t in order:
             pred, gate = self._predicted(t)
             if t is self.steered and self._reanchor(t, peak_tdoa, peak_value, pred, pair_ok):
                 pred, gate = self._predicted(t)
-            dist = np.abs(peak_tdoa - pred[:, None])
-            ok = (dist <= gate[:, None]) & (peak_value >= self.min_peak_value) & ~used & pair_ok[:, None]
-            dist = np.where(ok, dist, np.inf)
-            k = np.argmin(dist, axis=1)
-            took = np.isfinite(dist[self._rows, k])
+            n_took = _pick_peaks(peak_tdoa, peak_value, pred, gate, used, pair_ok, self.min_peak_value, k, picked)
+            took = picked
             tdoa = peak_tdoa[self._rows, k]
-            if took.sum() >= min_pairs:
+            if n_took >= min_pairs:
                 took = self._consistent(tdoa, took)   # peaks in the gate must also agree with each other
             n_took = int(took.sum())
             hit = False
@@ -531,7 +609,9 @@ class SourceTracker:
         x = t.kalman._kf.x
         m = self.n_devices - 1
         limit = MAX_DRIFT_RATE_S_PER_S if quiet else self.max_rate_s_per_s
-        np.clip(x[m:], -limit, limit, out=x[m:])
+        rate = x[m:]
+        np.minimum(rate, limit, out=rate)
+        np.maximum(rate, -limit, out=rate)
 
     def _quiet_check(self, peak_tdoa, peak_value, pair_ok, n_ok) -> None:
         """Non-speech frame (peaks of the plain PHAT): which tracks' peaks are still there? A source that
@@ -580,10 +660,13 @@ class SourceTracker:
                 t.hit_times_s = []
 
     def _lstsq(self, tdoa: np.ndarray, keep: np.ndarray) -> np.ndarray:
-        """Least-squares (minimum-norm) relative TOA of devices 1..M-1 from the pairs ``keep`` (eq. 12), through
-        a cached pseudo-inverse per set of pairs: the same few sets recur frame after frame, and a product is
-        ten times cheaper than a fresh SVD."""
-        key = keep.tobytes()
+        """Least-squares (minimum-norm) relative TOA of devices 1..M-1 from the pairs ``keep`` (eq. 12): the
+        normal equations (one compiled call) when the pairs connect every device, else a cached pseudo-inverse
+        per set of pairs."""
+        sol = np.empty(self.n_devices - 1)
+        if _solve_pairs(self._H0, tdoa, keep, sol):
+            return sol
+        key = keep.tobytes()   # the kept pairs leave a device unconnected: the minimum-norm solution
         pinv = self._pinv_cache.get(key)
         if pinv is None:
             if len(self._pinv_cache) >= 256:

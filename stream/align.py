@@ -151,6 +151,7 @@ _LAST = int(FrameFlag.LAST)
 _NEW_CLOCK = int(FrameFlag.NEW_CLOCK)
 _GAP = int(FrameFlag.GAP)
 RECHECK_MIN_QUALITY = 0.5        # envelope correlation a re-check needs to move an aligned device
+_TRIM_EVERY_BLOCKS = 8           # the buffers' fronts are dropped every few blocks (amortised)
 RECHECK_MAX_SILENT_SHARE = 0.1   # a re-check skips windows with more digital silence than this (stream ends)
 
 
@@ -273,6 +274,7 @@ class Aligner:
         self.offsets_samples = np.zeros(n_devices, dtype=np.int64)
         self.quality = np.ones(n_devices)
         self.aligned = np.ones(n_devices, dtype=bool)
+        self._is_reference = np.arange(n_devices) == 0
         self.ready = False
         self.next_block = 0
         self.events: list[AlignmentEvent] = []
@@ -325,11 +327,12 @@ class Aligner:
         """Whether any device is late (:meth:`_late_devices`)."""
         return bool(self._late_devices()) if self.deadline_s is not None else False
 
-    def _note_late(self, end: int) -> None:
-        """One sentence when a device falls behind the deadline, one when it has caught up; count its blocks."""
+    def _note_late(self, end: int, lacking: list[int]) -> None:
+        """One sentence when a device falls behind the deadline, one when it has caught up; count its blocks.
+        ``lacking``: the devices (not ended) without the samples of the block that ends at ``end``."""
         t_s = end / self.sample_rate_hz
         for d in range(self.n_devices):
-            late = not self._ended[d] and self._received[d] < end + int(self.offsets_samples[d])
+            late = d in lacking
             if late:
                 self.n_late_blocks[d] += 1
             if late and not self._late[d]:
@@ -459,47 +462,50 @@ class Aligner:
                 return
             self._initial_alignment()
         hop = self.hop_samples
+        n_dev = self.n_devices
         all_ended = all(self._ended)
         while True:
             k = self.next_block
             if self._ended[0] and k >= self._end_block():
                 break
+            offsets = self.offsets_samples.tolist()
             if not all_ended:
                 end = (k + 1) * hop
-                lacking = next((d for d in range(self.n_devices) if not self._ended[d]
-                                and self._received[d] < end + self.offsets_samples[d]), None)
-                if lacking is not None:
+                received, ended = self._received, self._ended
+                lacking = [d for d in range(n_dev) if not ended[d] and received[d] < end + offsets[d]]
+                if lacking:
                     late = self._late_devices()
-                    waiting = next((d for d in range(self.n_devices) if not self._ended[d] and d not in late
-                                    and self._received[d] < end + self.offsets_samples[d]), None)
-                    if waiting is not None or len(late) == self.n_devices - sum(self._ended):
-                        self._waiting_for = lacking if waiting is None else waiting
+                    waiting = next((d for d in lacking if d not in late), None)
+                    if waiting is not None or len(late) == n_dev - sum(ended):
+                        self._waiting_for = lacking[0] if waiting is None else waiting
                         break
-                self._note_late(end)
+                if lacking or any(self._late):
+                    self._note_late(end, lacking)
             self._waiting_for = None
             if self._pending is not None and k >= self._pending[0]:
                 self._apply_recheck()
+                offsets = self.offsets_samples.tolist()
             if self.recheck_blocks and k > 0 and k % self.recheck_blocks == 0 and self._pending is None:
                 self._submit_recheck()
-            samples = np.zeros((hop, self.n_devices), np.float32)
-            valid = np.zeros(self.n_devices, dtype=bool)
-            for d in range(self.n_devices):
-                start = k * hop + int(self.offsets_samples[d])
-                part = self._held_part(d, start, start + hop)   # written in place: zeros elsewhere
-                if part is None:
-                    continue
-                at, x = part
-                samples[at:at + len(x), d] = x
-                covered = min(start + hop, self._received[d]) - max(start, self._buf_start[d], 0)
-                rms = float(np.sqrt(np.dot(x, x) / hop))
-                valid[d] = bool((self.aligned[d] or d == 0) and covered >= hop // 2 and rms >= SILENCE_RMS)
+            samples = np.zeros((hop, n_dev), np.float32)
+            covered = [0] * n_dev
+            for d in range(n_dev):   # written in place: zeros where a device has no samples
+                start = k * hop + offsets[d]
+                part = self._held_part(d, start, start + hop)
+                if part is not None:
+                    at, x = part
+                    samples[at:at + len(x), d] = x
+                    covered[d] = min(start + hop, self._received[d]) - max(start, self._buf_start[d], 0)
+            rms = np.sqrt(np.einsum("ij,ij->j", samples, samples, dtype=np.float64) / hop)
+            valid = (self.aligned | self._is_reference) & (np.array(covered) >= hop // 2) & (rms >= SILENCE_RMS)
             corrected = None
             if self._corrected.any():
-                corrected, self._corrected = self._corrected, np.zeros(self.n_devices, bool)
+                corrected, self._corrected = self._corrected, np.zeros(n_dev, bool)
             self.next_block += 1
-            self._trim()
+            if self.next_block % _TRIM_EVERY_BLOCKS == 0:
+                self._trim()
             yield Block(seq=k, first_sample=k * hop, sample_rate_hz=self.sample_rate_hz, samples=samples,
-                        valid=valid, offsets_samples=self.offsets_samples.copy(), corrected=corrected)
+                        valid=valid, offsets_samples=np.array(offsets, np.int64), corrected=corrected)
 
     def _trim(self) -> None:
         keep = self.window_samples + self.hop_samples

@@ -249,3 +249,19 @@ def test_a_talker_who_moved_is_taken_over_by_the_steered_track():
     assert np.max(np.abs(tr.steered_toa_s - moved)) < 2.5e-4
     assert any(e.death_reason.startswith(f"taken over by the steered track {first}") for e in tr.ended)
     assert tr.report()["n_taken_over"] == tr.n_taken_over
+
+
+def test_the_compiled_fit_equals_the_pseudo_inverse_for_any_set_of_pairs():
+    """The eq. (12) fit of the pairs a track took goes through the normal equations when they connect every
+    device, else through the pseudo-inverse (minimum norm): both equal ``pinv(H0[keep]) tdoa[keep]``."""
+    rng = np.random.default_rng(3)
+    tr = SourceTracker(8, frame_period_s=DT, sample_rate_hz=FS)
+    h0 = pair_matrix(8)[:, 1:]
+    n_disconnected = 0
+    for _ in range(300):
+        keep = rng.random(28) < rng.uniform(0.15, 1.0)
+        tdoa = rng.normal(0, 2e-3, 28)
+        want = np.linalg.pinv(h0[keep]) @ tdoa[keep] if keep.any() else np.zeros(7)
+        n_disconnected += np.linalg.matrix_rank(h0[keep]) < 7 if keep.any() else 1
+        np.testing.assert_allclose(tr._lstsq(tdoa, keep), want, rtol=0, atol=1e-15)
+    assert 20 < n_disconnected < 280   # both paths ran
