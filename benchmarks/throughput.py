@@ -461,7 +461,7 @@ def bench_cpu_path(repeats: int, audio_s: float) -> dict:
     audio, _ = scene(m, fs, audio_s, SEED + 100)
     n_hops = len(audio) // hop
     blocks = [audio[k * hop:(k + 1) * hop] for k in range(n_hops)]
-    proc, thread, updates = [], [], []
+    proc, thread = [], []
     for r in range(repeats + 1):  # run 0 is the warm-up
         path = HopPath(cfg)
         p0, t0 = time.process_time(), time.thread_time()
@@ -538,13 +538,50 @@ def bench_engine(repeats: int, audio_s: float, profile: bool) -> dict:
     return result
 
 
-def bench_engine_tracks(repeats: int) -> dict:
+TRACKS_SCENES = ("s14_noise_table_babble_5dB", "s42_two_talkers_table_white_10dB")   # 8 devices, 16 kHz
+
+
+def _inputs_16k(files: list, tmp: pathlib.Path) -> list[pathlib.Path]:
+    """The files resampled to 16 kHz (soxr, 16-bit WAV): devices that record at the issue's rate."""
+    import soundfile as sf
+    import soxr
+
+    out = []
+    for f in files:
+        x, fs = sf.read(f, dtype="float32")
+        path = tmp / (pathlib.Path(f).stem + "_16k.wav")
+        sf.write(path, soxr.resample(x, fs, 16000), 16000, subtype="PCM_16")
+        out.append(path)
+    return out
+
+
+def _scene_inputs(data: pathlib.Path, tmp: pathlib.Path) -> dict[str, list]:
+    """Device files of :data:`TRACKS_SCENES` (``benchmarks/scenes.py``, seed 7), built from ``data``."""
+    import scenes as sc   # benchmarks/scenes.py: pyroomacoustics rooms, real speech and noise
+
+    sc.DATA = data   # the speech files' lengths place the talkers
+    out = {}
+    for kind, snr, scene in sc.make_scenes(7):
+        if scene.name in TRACKS_SCENES:
+            sc.bf.build(scene, data, tmp)
+            out[scene.name] = sorted((tmp / scene.name).glob("dev*.flac"))
+    return out
+
+
+def bench_engine_tracks(repeats: int, data: pathlib.Path | None = None) -> dict:
     """The whole engine with the multi-source tracker (``estimator="tracks"``: Silero speech presence,
     noise-aware multi-peak GCC-PHAT, the bank of TOA tracks) against the same engine with the single
-    ``KalmanToa``, alternating runs in this process, on real speech: the 8 device files of the shipped
-    ``async_8dev`` fixture (48 / 44.1 kHz, resampled to 16 kHz by the engine; given as plain files so that
-    no evaluation runs), frame 512, hop 128. CPU share of one core (process time / audio duration) and the
-    median ``Pipeline.process_block`` time per hop, also as a ratio to the FFT floor of 8 x 512."""
+    ``KalmanToa``, and the tracker with the WebRTC detector instead of Silero (``tracks_webrtc``), alternating
+    runs in this process, on real speech, frame 512, hop 128, working rate 16 kHz, 8 devices:
+
+    - ``async_8dev``: the 8 device files of the shipped fixture as recorded (48 / 44.1 kHz: decoding and
+      resampling to 16 kHz are part of the run), given as plain files so that no evaluation runs;
+    - ``async_8dev_16k``: the same recordings resampled to 16 kHz beforehand (devices that record at 16 kHz);
+    - with ``data`` (``../shared/data``): two 8-device scenes of ``benchmarks/scenes.py`` at 16 kHz, a
+      babble noise source at 5 dB and two talkers taking turns with white noise at 10 dB.
+
+    CPU share of one core (process time / audio duration, setup and report included) and the median
+    ``Pipeline.process_block`` time per hop, also as a ratio to the FFT floor of 8 x 512."""
     import logging
 
     from stream.fixture import load_fixture
@@ -553,22 +590,30 @@ def bench_engine_tracks(repeats: int) -> dict:
     logging.getLogger().setLevel(logging.ERROR)
     m, fs, frame, hop = CPU_CONFIG
     fx = load_fixture(REPO / "replay_fixtures" / "async_8dev")
-    files = [d.path for d in fx.devices][:m]
-    figures: dict[str, dict[str, list]] = {e: {"cpu": [], "block": [], "vad": []} for e in ("kalman", "tracks")}
+    variants = {"kalman": {"estimator": "kalman"}, "tracks": {"estimator": "tracks"},
+                "tracks_webrtc": {"estimator": "tracks", "vad": "webrtc"}}
+    cpu: dict[str, dict[str, list]] = {}
+    block: dict[str, list] = {v: [] for v in variants}
+    backend = ""
     with tempfile.TemporaryDirectory(prefix="throughput_tracks_") as tmp:
         tmp = pathlib.Path(tmp)
+        inputs = {"async_8dev": [d.path for d in fx.devices][:m]}
+        inputs["async_8dev_16k"] = _inputs_16k(inputs["async_8dev"], tmp)
+        if data is not None:
+            inputs.update(_scene_inputs(data, tmp))
         for r in range(repeats + 1):   # run 0 is the warm-up (imports, compiled caches, the VAD model)
-            for est in ("kalman", "tracks"):
-                config = EngineConfig(working_rate_hz=fs, frame_samples=frame, hop_samples=hop, estimator=est,
-                                      plots=False, progress=False)
-                outcome = run_replay(files, tmp / f"{est}{r}", config=config)
-                rep = outcome.report
-                if r:
-                    audio = rep["stream"]["audio_s"]
-                    figures[est]["cpu"].append(rep["timing"]["cpu_s"] / audio)
-                    figures[est]["block"].append(rep["timing"]["block_ms_median"])
-                    sp = rep.get("sources", {}).get("speech_presence", {})
-                    figures[est]["vad"].append(sp.get("backend", ""))
+            for name, files in inputs.items():
+                for v, opts in variants.items():
+                    config = EngineConfig(working_rate_hz=fs, frame_samples=frame, hop_samples=hop, plots=False,
+                                          progress=False, **opts)
+                    rep = run_replay(files, tmp / f"{name}_{v}_{r}", config=config).report
+                    if not r:
+                        continue
+                    cpu.setdefault(name, {}).setdefault(v, []).append(rep["timing"]["cpu_s"] / rep["stream"]["audio_s"])
+                    if name == "async_8dev":
+                        block[v].append(rep["timing"]["block_ms_median"])
+                    if v == "tracks":
+                        backend = rep.get("sources", {}).get("speech_presence", {}).get("backend", "")
     floor = Floor(PathConfig(m, fs, frame, hop))
     floor.load(np.zeros((frame, m), np.float32))
     ts = []
@@ -577,12 +622,13 @@ def bench_engine_tracks(repeats: int) -> dict:
         floor.ffts()
         ts.append(time.perf_counter() - t0)
     floor_ms = 1e3 * float(np.median(ts[20:]))
-    out = {"tracks_vad_backend": figures["tracks"]["vad"][-1] if figures["tracks"]["vad"] else "",
-           "tracks_fft_floor_ms_8x512": floor_ms}
-    for est in ("kalman", "tracks"):
-        out[f"engine_{est}_cpu_fraction_8dev_16k_hop128"] = float(np.median(figures[est]["cpu"]))
-        out[f"engine_{est}_block_ms_median"] = float(np.median(figures[est]["block"]))
-        out[f"engine_{est}_block_ratio_to_fft_floor"] = out[f"engine_{est}_block_ms_median"] / floor_ms
+    out = {"tracks_vad_backend": backend, "tracks_fft_floor_ms_8x512": floor_ms,
+           "engine_cpu_fraction_by_input": {name: {v: float(np.median(x)) for v, x in by.items()}
+                                            for name, by in cpu.items()}}
+    for v in variants:
+        out[f"engine_{v}_cpu_fraction_8dev_16k_hop128"] = float(np.median(cpu["async_8dev"][v]))
+        out[f"engine_{v}_block_ms_median"] = float(np.median(block[v]))
+        out[f"engine_{v}_block_ratio_to_fft_floor"] = out[f"engine_{v}_block_ms_median"] / floor_ms
     out["tracks_cpu_ratio_to_kalman"] = (out["engine_tracks_cpu_fraction_8dev_16k_hop128"]
                                          / out["engine_kalman_cpu_fraction_8dev_16k_hop128"])
     return out
@@ -703,6 +749,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--quick", action="store_true", help="smoke run: few rounds, 3 s of audio for the CPU runs")
     ap.add_argument("--cpu-audio-s", type=float, default=None, help="audio per CPU run in seconds (default 10)")
     ap.add_argument("--profile", action="store_true", help="print cProfile top entries of the path and engine to stderr")
+    ap.add_argument("--data", type=pathlib.Path, default=REPO.parent / "shared" / "data",
+                    help="shared data dir (audio/): two 8-device scenes for the tracker's CPU (default ../shared/data)")
     args = ap.parse_args(argv)
     repeats = args.repeats or (3 if args.quick else 40)
     if repeats < 1:
@@ -719,7 +767,11 @@ def main(argv: list[str] | None = None) -> int:
     paths, rows = bench_paths(repeats, hops_per_round, audio_s=4.0 if args.quick else 8.0)
     cpu = bench_cpu_path(cpu_repeats, cpu_audio_s)
     engine = bench_engine(cpu_repeats, cpu_audio_s, args.profile)
-    tracks = bench_engine_tracks(1 if args.quick else max(2, cpu_repeats // 2))
+    data = args.data if (args.data / "audio").is_dir() else None
+    if data is None:
+        print(f"--data {args.data} has no audio/ folder: the tracker's CPU is measured on async_8dev only",
+              file=sys.stderr)
+    tracks = bench_engine_tracks(1 if args.quick else max(2, cpu_repeats // 2), data=None if args.quick else data)
     engine.update(tracks)
     if args.profile:
         profile_path(4.0)
@@ -780,14 +832,20 @@ def main(argv: list[str] | None = None) -> int:
     print(f"machine: nproc {m['nproc']}, load {m['loadavg_start']} -> {m['loadavg_end']}, "
           f"elapsed {result['elapsed_s']:.0f} s")
     print()
-    print("Whole engine with the multi-source tracker vs the single Kalman, async_8dev speech, 8 devices, "
+    print("Whole engine with the multi-source tracker vs the single Kalman, real speech, 8 devices, working rate "
           "16 kHz, frame 512, hop 128")
     print(f"  speech presence: {result['tracks_vad_backend']}; FFT floor {result['tracks_fft_floor_ms_8x512']:.3f} ms/hop")
-    for est in ("kalman", "tracks"):
-        print(f"  {est:7s} CPU {100 * result[f'engine_{est}_cpu_fraction_8dev_16k_hop128']:5.1f} % of a core, "
-              f"process_block median {result[f'engine_{est}_block_ms_median']:.3f} ms "
-              f"({result[f'engine_{est}_block_ratio_to_fft_floor']:.1f} x floor)")
-    print(f"  tracks / kalman CPU: {result['tracks_cpu_ratio_to_kalman']:.2f}  (target: whole engine <= 5 % of a core)")
+    for est in ("kalman", "tracks", "tracks_webrtc"):
+        print(f"  {est:13s} process_block median {result[f'engine_{est}_block_ms_median']:.3f} ms "
+              f"({result[f'engine_{est}_block_ratio_to_fft_floor']:.1f} x floor) on async_8dev")
+    by_input = result["engine_cpu_fraction_by_input"]
+    variants = list(next(iter(by_input.values())))
+    print("  CPU share of one core (whole engine, setup and report included), median of runs:")
+    print(f"    {'input':<34} " + " ".join(f"{v:>13}" for v in variants))
+    for name, by in by_input.items():
+        print(f"    {name:<34} " + " ".join(f"{100 * by[v]:12.2f}%" for v in variants))
+    print(f"  tracks / kalman CPU (async_8dev): {result['tracks_cpu_ratio_to_kalman']:.2f}  "
+          "(target: whole engine <= 5 % of a core)")
     print(json.dumps(result, sort_keys=False))
     return 0
 

@@ -123,7 +123,7 @@ def _pair_spectrum(xi, xj, oi, oj, phi, sm, g, scratch, a, b, mode, update, phi_
     at 0). ``scratch`` (>= n_bins floats) holds |G|^2."""
     n_bins = xi.shape[0]
     peak2 = np.float32(0.0)
-    if b == 1.0:   # no short-time average (the engine's setting): this frame's cross spectrum
+    if b == 1.0:   # no short-time average (gcc_smoothing_s = 0): this frame's cross spectrum
         for k in range(n_bins):
             c = xi[k] * xj[k].conjugate()
             if mode == 2:
@@ -317,7 +317,7 @@ class NoiseAwareGcc:
         # the last d frames (channel-major spectra, usable channels, speech presence); slot _ring_pos is the oldest
         self._ring = np.zeros((max(d, 1), self.n_channels, self.n_bins), np.complex64)
         self._ring_usable = np.zeros((max(d, 1), self.n_channels), np.bool_)
-        self._ring_p = np.ones(max(d, 1))
+        self._ring_p = [1.0] * max(d, 1)
         self._ring_pos = 0
         self._noise = np.zeros((self.n_pairs, self.n_bins), np.complex64)
         self._smooth = np.zeros((self.n_pairs, self.n_bins), np.complex64)
@@ -334,7 +334,7 @@ class NoiseAwareGcc:
         self._noise[:] = 0.0
         self._smooth[:] = 0.0
         self._ring_usable[:] = False
-        self._ring_p[:] = 1.0
+        self._ring_p = [1.0] * len(self._ring_p)
         self.n_noise_frames = 0.0
         self._noise_weight = 0.0
         self._params[_P_NOISE_SCALE] = 0.0
@@ -388,7 +388,7 @@ class NoiseAwareGcc:
         p = float(speech_probability) if np.isfinite(speech_probability) else 1.0
         d = self.noise_delay_frames
         if d:   # the oldest frame kept updates the noise, unless speech was heard since
-            p_update = max(p, float(self._ring_p.max()))
+            p_update = max(p, max(self._ring_p))
         else:
             p_update = p
         self._params[_P_SPEECH] = p_update

@@ -147,6 +147,10 @@ class SpeechPresence:
         self._silero_state = np.zeros((2, self.n_devices, 128), np.float32)
         self._silero_input = np.zeros((self.n_devices, _SILERO_CONTEXT + _SILERO_WINDOW), np.float32)
         self._speaking = np.zeros(self.n_devices, bool)
+        self._silero_fill = 0                             # samples buffered (every device alike)
+        self._all_usable = np.ones(self.n_devices, bool)
+        self._last: SpeechFrame | None = None            # the last hop's presence and its usable devices
+        self._last_usable = b""
         self.n_frames = 0
         self.n_speech_frames = 0
 
@@ -163,14 +167,18 @@ class SpeechPresence:
         x = np.asarray(samples, dtype=np.float32)
         if x.ndim != 2 or x.shape[1] != self.n_devices:
             raise ValueError(f"samples.shape={x.shape} must be (n_samples, n_devices={self.n_devices})")
-        if not np.isfinite(x).all():
+        if not np.isfinite(x.sum()):   # one sum instead of a mask: a NaN or an infinity makes it non-finite
             x = np.nan_to_num(x, nan=0.0, posinf=0.0, neginf=0.0)
-        usable = np.ones(self.n_devices, bool) if valid is None else np.asarray(valid, bool)
+        usable = self._all_usable if valid is None else np.asarray(valid, bool)
         frame = self.vad_frame_samples
         if self._resampler is not None:   # every device at once: (n, n_devices) at the VAD's rate
             x = self._resampler.resample_chunk(np.ascontiguousarray(x))
         if self.backend == "silero":
-            return self._combine(self._process_silero(x), usable)
+            if not self._process_silero(x) and self._last is not None and usable.tobytes() == self._last_usable:
+                self.n_frames += 1    # no new window and the same devices: the last hop's presence holds
+                self.n_speech_frames += self._last.probability >= 0.5
+                return self._last
+            return self._combine(self._held > 0, usable)
         for d in range(self.n_devices):
             col = x[:, d]
             n0 = int(self._fill[d])
@@ -197,14 +205,16 @@ class SpeechPresence:
         p = min(1.0, float(device_p.sum()) / need)
         self.n_frames += 1
         self.n_speech_frames += p >= 0.5
-        return SpeechFrame(p, device_p)
+        self._last, self._last_usable = SpeechFrame(p, device_p), usable.tobytes()
+        return self._last
 
-    def _process_silero(self, x: np.ndarray) -> np.ndarray:
+    def _process_silero(self, x: np.ndarray) -> bool:
         """Buffer the hop (at the model's rate) of every device; run each complete 32 ms window of all devices
-        in one batched model call; return which devices are speaking (hysteresis, then hangover)."""
+        in one batched model call, which updates which devices are speaking (hysteresis, then hangover).
+        Returns whether a window ran."""
         frame = self.vad_frame_samples
         n_new = len(x)
-        n0 = int(self._fill[0])
+        n0 = self._silero_fill
         if n0 + n_new > self._buffer.shape[1]:
             keep = (self._buffer.shape[1] - n_new) // frame * frame
             self._buffer[:, :keep] = self._buffer[:, n0 - keep:n0]
@@ -224,8 +234,8 @@ class SpeechPresence:
             start += frame
         if start:
             self._buffer[:, :n - start] = self._buffer[:, start:n]
-        self._fill[:] = n - start
-        return self._held > 0
+        self._silero_fill = n - start
+        return start > 0
 
     def _decide(self, d: int, frame: np.ndarray) -> bool:
         if self.backend == "webrtc":
