@@ -620,6 +620,8 @@ class NetSource:
             self._wake.wait(0.05)
             self._wake.clear()
         names = list(self.expect) if self.expect else present
+        log.info("Discovery ended after %.1f s: %s present.", time.monotonic() - t_end + self.discover_s,
+                 ", ".join(present) or "no device")
         if self.expect and names[0] not in present and any(n in present for n in names):
             # the reference is the clock every output is on: one that is not there would hold every output back
             # until it comes; the first expected device that is there takes its place

@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 import os
 import re
+import select
 import signal
 import socket
 import subprocess
@@ -58,14 +59,36 @@ def _device(procs, k: int, array: str, *net: str, start_s: float = 0.0, wait: bo
                   "--no-scouting", "--start-s", start_s, "--wait-aggregator", 30 if wait else 0, *net)
 
 
+def _command(p: subprocess.Popen) -> str:
+    """The adhoc-array command a process runs (its first argument that is not an option)."""
+    return next(a for a in p.args[len(CLI):] if not a.startswith("-"))
+
+
 def _finish(p: subprocess.Popen, timeout_s: float) -> tuple[str, str]:
     try:
         out, err = p.communicate(timeout=timeout_s)
     except subprocess.TimeoutExpired:
         p.kill()
         out, err = p.communicate()
-        pytest.fail(f"{p.args[3]} did not end within {timeout_s} s:\n{out[-2000:]}\n{err[-3000:]}")
+        pytest.fail(f"{_command(p)} did not end within {timeout_s} s:\n{out[-2000:]}\n{err[-3000:]}")
     return out, err
+
+
+def _wait_for_line(p: subprocess.Popen, text: str, timeout_s: float) -> list[str]:
+    """The process's stderr lines up to the first that contains ``text`` (kept: :func:`_finish` returns the rest)."""
+    lines: list[str] = []
+    t_end = time.monotonic() + timeout_s
+    while time.monotonic() < t_end:
+        ready, _, _ = select.select([p.stderr], [], [], max(0.0, t_end - time.monotonic()))
+        if not ready:
+            break
+        line = p.stderr.readline()
+        if not line:
+            break
+        lines.append(line)
+        if text in line:
+            return lines
+    pytest.fail(f"{_command(p)} did not say {text!r} within {timeout_s} s:\n{''.join(lines)[-3000:]}")
 
 
 def _report(out: Path) -> dict:
@@ -152,9 +175,12 @@ def test_a_late_aggregator_and_a_device_killed_and_restarted(procs, tmp_path):
     t0 = time.monotonic()
     devs = [_device(procs, k, "t2", "--connect", ep, wait=False) for k in range(3)]  # peers retrying to connect
     time.sleep(2.0)
-    agg = _spawn(procs, "aggregate", "--out", out, "--listen", ep, "--no-scouting", "--array", "t2",
+    agg = _spawn(procs, "--verbose", "aggregate", "--out", out, "--listen", ep, "--no-scouting", "--array", "t2",
                  "--expect", "phone0,phone1,phone2", "--until-done", "--discover-s", 20, "--no-plots")
-    time.sleep(3.0)
+    # phone2 is killed once the aggregator has heard it (its start-up takes longer on a loaded machine), mid-stream
+    head = _wait_for_line(agg, "Discovery ended", 15.0)
+    assert "phone2" in head[-1], head
+    time.sleep(max(0.5, 5.0 - (time.monotonic() - t0)))
     devs[2].send_signal(signal.SIGKILL)
     devs[2].wait()
     t_kill = time.monotonic() - t0
