@@ -477,7 +477,10 @@ class Aligner:
                 lacking = [d for d in range(n_dev) if not ended[d] and received[d] < end + offsets[d]]
                 if lacking:
                     late = self._late_devices()
-                    waiting = next((d for d in lacking if d not in late), None)
+                    # wait for the one furthest behind (the last to come, in a round of pushes): pushes from the
+                    # others return at once (push)
+                    waiting = max((d for d in lacking if d not in late), default=None,
+                                  key=lambda d: (offsets[d] - received[d], d))
                     if waiting is not None or len(late) == n_dev - sum(ended):
                         self._waiting_for = lacking[0] if waiting is None else waiting
                         break

@@ -119,7 +119,8 @@ class DeviceConditioner:
                 flags |= FrameFlag.NAN_REPLACED
             energy = float(np.dot(x.astype(np.float64), x.astype(np.float64)))
         if len(x):
-            if x.max() >= CLIP_LEVEL or x.min() <= -CLIP_LEVEL:
+            # no sample can reach the clip level when the energy (their squares' sum) is below its square
+            if energy >= CLIP_LEVEL * CLIP_LEVEL and (x.max() >= CLIP_LEVEL or x.min() <= -CLIP_LEVEL):
                 c.n_clipped_samples += int(np.count_nonzero(np.abs(x) >= CLIP_LEVEL))
                 flags |= FrameFlag.CLIPPED
             if np.sqrt(energy / len(x)) < SILENCE_RMS:

@@ -206,6 +206,7 @@ def run_stream(source, out_dir: str | Path, *, config: EngineConfig, fixture: Fi
     pipeline = None
     calibrator = None
     wav = csv_sink = None
+    steady: list[tuple[float, float]] = []   # (process, wall) time at the first hop out and at the input's end
     stopped: list[str] = []
     restore = _install_stop_handlers(source, stopped) if handle_signals else (lambda: None)
     try:
@@ -241,6 +242,8 @@ def run_stream(source, out_dir: str | Path, *, config: EngineConfig, fixture: Fi
             hop_sinks = [wav, csv_sink, *extra_sinks]
 
             def write(results) -> None:
+                if results and not steady:   # the first hop out: the stream is running (start-up is over)
+                    steady.append((time.process_time(), time.perf_counter()))
                 for result in results:
                     for sink in hop_sinks:
                         sink.write(result)
@@ -259,6 +262,7 @@ def run_stream(source, out_dir: str | Path, *, config: EngineConfig, fixture: Fi
                     if status is not None and time.perf_counter() >= next_status:
                         next_status += status_every_s
                         status(pipeline)
+                steady.append((time.process_time(), time.perf_counter()))   # the input ended
                 write(pipeline.finish())
                 if on_end is not None:
                     on_end()
@@ -284,14 +288,14 @@ def run_stream(source, out_dir: str | Path, *, config: EngineConfig, fixture: Fi
             calibrator.close()
         if extra_report is not None:
             extra_report(report)
-        _finalise(report, out, cfg, pipeline, fixture, names, collector, t_wall0, t_cpu0, wav, csv_sink)
+        _finalise(report, out, cfg, pipeline, fixture, names, collector, t_wall0, t_cpu0, wav, csv_sink, steady)
         raise
     restore()
     if calibrator is not None:
         calibrator.close()
     if extra_report is not None:
         extra_report(report)
-    _finalise(report, out, cfg, pipeline, fixture, names, collector, t_wall0, t_cpu0, wav, csv_sink)
+    _finalise(report, out, cfg, pipeline, fixture, names, collector, t_wall0, t_cpu0, wav, csv_sink, steady)
     return RunOutcome(report, pipeline, out)
 
 
@@ -318,7 +322,8 @@ def observed_drift_ppm(time_s: np.ndarray, toa_s: np.ndarray, gated: np.ndarray,
     return out
 
 
-def _finalise(report, out, cfg, pipeline, fixture, names, collector, t_wall0, t_cpu0, wav, csv_sink) -> None:
+def _finalise(report, out, cfg, pipeline, fixture, names, collector, t_wall0, t_cpu0, wav, csv_sink,
+              steady) -> None:
     for s in (wav, csv_sink):
         if s is not None:
             s.close()
@@ -381,6 +386,11 @@ def _finalise(report, out, cfg, pipeline, fixture, names, collector, t_wall0, t_
             "hop_ms": 1e3 * cfg.hop_samples / fs,
             "cpu_fraction_of_one_core": ht.percentile(50) / (1e3 * cfg.hop_samples / fs),
             "kernel_compile_s": pipeline.compile_s,   # numba: compile or cache load before the first block
+            # CPU share (every thread) from the first hop out to the end of the input: the running stream,
+            # without the start-up (kernels, the first alignment) and the report
+            "running_cpu_share": ((steady[1][0] - steady[0][0]) / (steady[1][1] - steady[0][1])
+                                  if len(steady) == 2 and steady[1][1] > steady[0][1] else None),
+            "running_wall_s": steady[1][1] - steady[0][1] if len(steady) == 2 else None,
         }
         if pipeline.tracker is not None:
             sources = pipeline.tracker.report()

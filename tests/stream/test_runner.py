@@ -19,7 +19,7 @@ from stream.pipeline import History, HopTimes
 from stream.replay import ReplaySource
 from stream.run import run_replay, run_stream
 from stream.sinks import RecordingSink
-from tests.conftest import bursty_source, delayed
+from tests.conftest import REPO_FIXTURES, bursty_source, delayed
 
 FS = 16000
 
@@ -280,3 +280,13 @@ def test_leading_digital_silence_does_not_mislead_the_first_alignment(tmp_path):
     assert out.report["stream"]["alignment_events"] == []
     np.testing.assert_allclose(out.report["stream"]["coarse_offsets_s"], ref.report["stream"]["coarse_offsets_s"],
                                atol=3 / FS)
+
+
+def test_the_report_times_the_running_stream_apart_from_its_start(tmp_path):
+    """``timing.running_cpu_share``: CPU over wall time from the first hop out to the end of the input, without
+    the start-up (the first alignment's wait, the kernels) and the report; as fast as possible it is about one
+    core (every thread counts: at most two here)."""
+    rep = run_replay([REPO_FIXTURES / "walking_talker"], tmp_path, config=EngineConfig(plots=False, progress=False)).report
+    t = rep["timing"]
+    assert 0 < t["running_wall_s"] < t["wall_s"]
+    assert 0.2 < t["running_cpu_share"] < 2.1, t
