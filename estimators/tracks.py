@@ -157,7 +157,7 @@ def _pick_peaks(peak_tdoa, peak_value, pred, gate, used, pair_ok, min_peak, k_ou
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _solve_pairs(H0, tdoa, keep, out):
-    """Least squares ``H0[keep] toa = tdoa[keep]`` through the normal equations (Cholesky of the 
+    """Least squares ``H0[keep] toa = tdoa[keep]`` through the normal equations (Cholesky of the
     ``(M-1) x (M-1)`` matrix ``H0[keep]^T H0[keep]``, which is regular when the kept pairs connect every device
     to device 0). Returns False, leaving ``out`` undefined, when it is not."""
     n_pairs, m = H0.shape

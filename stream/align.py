@@ -495,7 +495,7 @@ class Aligner:
             samples = np.zeros((hop, n_dev), np.float32)
             covered = [0] * n_dev
             for d, (buf, b0, start) in enumerate(zip(self._bufs, self._buf_start, offsets)):
-                start += k * hop   # the device's samples [start, start + hop): zeros where it has none
+                start += k * hop   # its samples [start, start + hop) (as _held_part, without a call per device)
                 lo, hi = max(start, b0), min(start + hop, b0 + len(buf))
                 if hi > lo:
                     samples[lo - start:hi - start, d] = buf.data[lo - b0:hi - b0]
