@@ -98,9 +98,11 @@ def coarse_offset(x_ref: np.ndarray, x: np.ndarray, *, sample_rate_hz: float, ma
     ok = (np.abs(lags) <= max_lag) & (overlap >= min_overlap)
     if not ok.any():
         return 0, 0.0
-    # rank by correlation times the square root of the overlap share, so that a short overlap that
-    # happens to correlate does not beat the long one of the true offset
-    rank = np.where(ok, score * np.sqrt(overlap / min(len(e), len(e_ref))), -np.inf)
+    # rank by correlation times the square root of the overlap share (full weight from FULL_OVERLAP_SHARE on),
+    # so that a short overlap that happens to correlate does not beat the long one of the true offset, while
+    # among long overlaps the best correlation wins (a repeated sentence correlates at the repetition's lag too)
+    share = np.minimum(overlap / (FULL_OVERLAP_SHARE * min(len(e), len(e_ref))), 1.0)
+    rank = np.where(ok, score * np.sqrt(share), -np.inf)
     k = int(np.argmax(rank))
     quality = float(np.clip(score[k], 0.0, 1.0))
     coarse = int(lags[k]) * hop
@@ -150,6 +152,7 @@ def _recheck_offsets(ref: np.ndarray, segments: dict[int, np.ndarray], *, sample
 _LAST = int(FrameFlag.LAST)
 _NEW_CLOCK = int(FrameFlag.NEW_CLOCK)
 _GAP = int(FrameFlag.GAP)
+FULL_OVERLAP_SHARE = 0.75        # an envelope overlap this long (of the shorter window) counts in full
 RECHECK_MIN_QUALITY = 0.5        # envelope correlation a re-check needs to move an aligned device
 _TRIM_EVERY_BLOCKS = 8           # the buffers' fronts are dropped every few blocks (amortised)
 RECHECK_MAX_SILENT_SHARE = 0.1   # a re-check skips windows with more digital silence than this (stream ends)

@@ -22,6 +22,22 @@ def test_coarse_offset_finds_start_offsets(offset_s):
     assert quality > 0.5
 
 
+def test_a_sentence_said_again_is_aligned_on_the_talk_not_on_its_repetition():
+    """A talker who says nearly the same thing again makes the envelopes correlate at the repetition's lag too,
+    over a longer overlap when the device started late; the true lag correlates better and must win (the overlap
+    weighting once gave it to the repetition: a scene's device 4.7 s off)."""
+    said = bursty_source(4 * FS, sample_rate_hz=FS, seed=4)
+    other = bursty_source(4 * FS, sample_rate_hz=FS, seed=14)
+    again = (0.8 * said + 0.2 * other).astype(np.float32)          # said again, a fifth of it different
+    talk = np.concatenate([said, again, again, bursty_source(2 * FS, sample_rate_hz=FS, seed=24)])
+    noise = np.random.default_rng(1).standard_normal((2, len(talk))).astype(np.float32) * 0.01
+    ref = (talk + noise[0])[:8 * FS]
+    late = int(1.3 * FS)                     # the device started 1.3 s after the reference
+    x = (talk + noise[1])[late:late + 12 * FS]
+    off, quality = coarse_offset(ref, x, sample_rate_hz=FS, max_offset_s=4.0)
+    assert off == -late and quality > 0.9
+
+
 def test_unrelated_signal_has_low_quality():
     a = bursty_source(6 * FS, sample_rate_hz=FS, seed=1)
     b = np.random.default_rng(5).standard_normal(6 * FS).astype(np.float32) * 0.1
