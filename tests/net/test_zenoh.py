@@ -75,20 +75,24 @@ def _finish(p: subprocess.Popen, timeout_s: float) -> tuple[str, str]:
 
 
 def _wait_for_line(p: subprocess.Popen, text: str, timeout_s: float) -> list[str]:
-    """The process's stderr lines up to the first that contains ``text`` (kept: :func:`_finish` returns the rest)."""
-    lines: list[str] = []
+    """The process's stderr lines up to the first that contains ``text``, read from the pipe itself (no buffer
+    in between: :func:`_finish` then gets the rest)."""
+    data = b""
     t_end = time.monotonic() + timeout_s
+    fd = p.stderr.fileno()
     while time.monotonic() < t_end:
-        ready, _, _ = select.select([p.stderr], [], [], max(0.0, t_end - time.monotonic()))
+        ready, _, _ = select.select([fd], [], [], max(0.0, t_end - time.monotonic()))
         if not ready:
             break
-        line = p.stderr.readline()
-        if not line:
+        chunk = os.read(fd, 65536)
+        if not chunk:
             break
-        lines.append(line)
-        if text in line:
-            return lines
-    pytest.fail(f"{_command(p)} did not say {text!r} within {timeout_s} s:\n{''.join(lines)[-3000:]}")
+        data += chunk
+        lines = data.decode(errors="replace").splitlines()
+        for k, line in enumerate(lines):
+            if text in line:
+                return lines[:k + 1]
+    pytest.fail(f"{_command(p)} did not say {text!r} within {timeout_s} s:\n{data.decode(errors='replace')[-3000:]}")
 
 
 def _report(out: Path) -> dict:
