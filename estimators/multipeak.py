@@ -123,25 +123,14 @@ def _pair_spectrum(xi, xj, oi, oj, phi, sm, g, scratch, a, b, mode, update, phi_
     at 0). ``scratch`` (>= n_bins floats) holds |G|^2."""
     n_bins = xi.shape[0]
     peak2 = np.float32(0.0)
-    if b == 1.0:   # no short-time average (gcc_smoothing_s = 0): this frame's cross spectrum
-        for k in range(n_bins):
-            c = xi[k] * xj[k].conjugate()
-            if mode == 2:
-                sm[k] = c
-            r = c if mode == 0 else c - phi_scale * phi[k]
-            g[k] = r
-            m2 = r.real * r.real + r.imag * r.imag
-            scratch[k] = m2
-            peak2 = m2 if m2 > peak2 else peak2
-    else:
-        for k in range(n_bins):
-            c = xi[k] * xj[k].conjugate()
-            sm[k] += b * (c - sm[k])
-            r = c if mode == 0 else sm[k] - phi_scale * phi[k]
-            g[k] = r
-            m2 = r.real * r.real + r.imag * r.imag
-            scratch[k] = m2
-            peak2 = m2 if m2 > peak2 else peak2
+    for k in range(n_bins):
+        c = xi[k] * xj[k].conjugate()
+        sm[k] += b * (c - sm[k])
+        r = c if mode == 0 else sm[k] - phi_scale * phi[k]
+        g[k] = r
+        m2 = r.real * r.real + r.imag * r.imag
+        scratch[k] = m2
+        peak2 = m2 if m2 > peak2 else peak2
     if update and a != 0.0:   # a = 0 on speech frames: the average stays as it is
         for k in range(n_bins):
             c = oi[k] * oj[k].conjugate()

@@ -268,7 +268,6 @@ class Aligner:
         self._late = [False] * n_devices
         self.n_late_blocks = np.zeros(n_devices, dtype=np.int64)
         self._corrected = np.zeros(n_devices, bool)
-        self._any_corrected = False
         self._new_clock_pending: set[int] = set()
         self._ref_start: int | None = None     # reference sample of its first frame that is not a gap
         self._bufs = [_SampleBuffer() for _ in range(n_devices)]
@@ -424,7 +423,6 @@ class Aligner:
             return
         if correction:
             self._corrected[device_id] = True
-            self._any_corrected = True
         old = int(self.offsets_samples[device_id])
         self.offsets_samples[device_id] = old + int(delta_samples)
         t_s = self.next_block * self.hop_samples / self.sample_rate_hz
@@ -497,18 +495,18 @@ class Aligner:
                 self._submit_recheck()
             samples = np.zeros((hop, n_dev), np.float32)
             covered = [0] * n_dev
-            for d, (buf, b0, start) in enumerate(zip(self._bufs, self._buf_start, offsets)):
-                start += k * hop   # its samples [start, start + hop) (as _held_part, without a call per device)
-                lo, hi = max(start, b0), min(start + hop, b0 + len(buf))
-                if hi > lo:
-                    samples[lo - start:hi - start, d] = buf.data[lo - b0:hi - b0]
-                    covered[d] = min(start + hop, self._received[d]) - max(lo, 0)
+            for d in range(n_dev):   # written in place: zeros where a device has no samples
+                start = k * hop + offsets[d]
+                part = self._held_part(d, start, start + hop)
+                if part is not None:
+                    at, x = part
+                    samples[at:at + len(x), d] = x
+                    covered[d] = min(start + hop, self._received[d]) - max(start, self._buf_start[d], 0)
             rms = np.sqrt(np.einsum("ij,ij->j", samples, samples, dtype=np.float64) / hop)
             valid = (self.aligned | self._is_reference) & (np.array(covered) >= hop // 2) & (rms >= SILENCE_RMS)
             corrected = None
-            if self._any_corrected:
+            if self._corrected.any():
                 corrected, self._corrected = self._corrected, np.zeros(n_dev, bool)
-                self._any_corrected = False
             self.next_block += 1
             if self.next_block % _TRIM_EVERY_BLOCKS == 0:
                 self._trim()
