@@ -80,6 +80,8 @@ class Session:
     chirp_template: np.ndarray
     chirp: dict
     talker_m: np.ndarray               # (3,) the talker's position
+    array_rotation: np.ndarray | None = None   # (3, 3) the array device's rotation (room frame), if there is one
+    arrays_toml: Path | None = None    # the arrays file naming it (the engine's ``arrays`` option)
 
     def clock_s(self, i: int, true_s):
         """Device ``i``'s clock at true time: ``(t - start_i) (1 + drift_i)``."""
@@ -89,7 +91,7 @@ class Session:
         """The geometry's truth: ``offsets_s = tau_i - tau_0`` with ``tau_i`` device ``i``'s clock at the
         emission of event ``first_event``, drifts relative to device 0, device 0's clock at that emission."""
         e = self.emission_s[first_event]
-        tau = np.array([self.clock_s(i, e) for i in range(len(self.paths))])
+        tau = np.array([self.clock_s(i, e) for i in range(len(self.positions_m))])
         q = (1.0 + self.drifts_ppm * 1e-6) / (1.0 + self.drifts_ppm[0] * 1e-6)
         return {"offsets_s": tau - tau[0], "drifts_ppm": (q - 1.0) * 1e6, "epoch_clock_s": tau[0]}
 
@@ -106,9 +108,15 @@ def simulate_session(out_dir: str | Path, *, n_devices: int = 5, n_events: int =
                      interval_range_s=(0.9, 1.3), first_chirp_s: float = 1.0, tail_s: float = 1.5,
                      max_offset_s: float = 0.1, max_drift_ppm: float = 100.0, odometry_noise_m: float = 0.01,
                      chirp_duration_s: float = 0.1, chirp_f0_hz: float = 500.0, chirp_f1_hz: float = 6000.0,
-                     chirp_gain: float = 0.3, speech_rms: float = 0.05, sensor_noise_rms: float = 3e-4) -> Session:
+                     chirp_gain: float = 0.3, speech_rms: float = 0.05, sensor_noise_rms: float = 3e-4,
+                     array: tuple[int, np.ndarray] | None = None) -> Session:
     """Simulate a session and write it to ``out_dir``: ``dev00.wav ...`` (float WAV, each device's own clock)
-    and ``odometry.csv`` (``dx_m,dy_m,dz_m,interval_s``)."""
+    and ``odometry.csv`` (``dx_m,dy_m,dz_m,interval_s``).
+
+    ``array = (d, mics_m)``: device ``d`` is a synchronous array of these mics (its own frame, metres), centred
+    where the device would be and turned by a random yaw and a tilt of up to 20 degrees; its file has one
+    channel per mic, and ``arrays.toml`` names it. The session's positions, offsets and drifts are then per
+    channel (the array's mics one after the other, in device order)."""
     import pyroomacoustics as pra
 
     bf = fixture_builder()
@@ -126,6 +134,18 @@ def simulate_session(out_dir: str | Path, *, n_devices: int = 5, n_events: int =
             break
     offsets = rng.uniform(0.0, max_offset_s, n_devices)
     drifts = rng.uniform(-max_drift_ppm, max_drift_ppm, n_devices)
+    array_rotation = None
+    channel_device = np.arange(n_devices)
+    if array is not None:   # the device's mics: its position becomes their centre; they share its clock
+        from scipy.spatial.transform import Rotation
+        d_arr, local = int(array[0]), np.asarray(array[1], float)
+        array_rotation = Rotation.from_euler("ZYX", [rng.uniform(-180, 180), rng.uniform(-20, 20),
+                                                     rng.uniform(-20, 20)], degrees=True).as_matrix()
+        mics = pos[d_arr] + (local - local.mean(axis=0)) @ array_rotation.T
+        channel_device = np.concatenate([[i] if i != d_arr else [i] * len(local) for i in range(n_devices)])
+        pos = np.vstack([pos[i:i + 1] if i != d_arr else mics for i in range(n_devices)])
+        offsets, drifts = offsets[channel_device], drifts[channel_device]
+    n_channels = len(pos)
     talker = np.array([0.3 * room[0] + rng.uniform(-0.2, 0.2), 0.6 * room[1] + rng.uniform(-0.2, 0.2), 1.5])
     # the robot's path: an ellipse around the room centre with the loudspeaker going up and down
     theta = np.linspace(0.0, 1.6 * np.pi, n_events) + rng.uniform(-0.05, 0.05, n_events)
@@ -144,9 +164,9 @@ def simulate_session(out_dir: str | Path, *, n_devices: int = 5, n_events: int =
         r.add_source(list(src))
         r.add_microphone_array(pos.T)
         r.compute_rir()
-        return [np.asarray(r.rir[m][0], float) for m in range(n_devices)]
+        return [np.asarray(r.rir[m][0], float) for m in range(n_channels)]
 
-    sync = np.zeros((n_devices, n_sync))
+    sync = np.zeros((n_channels, n_sync))
     # talker: the fixture's dry speech, looped with 0.4 s pauses
     s, rate = sf.read(SPEECH, dtype="float64")
     if rate != fs:
@@ -177,11 +197,18 @@ def simulate_session(out_dir: str | Path, *, n_devices: int = 5, n_events: int =
     k = np.arange(n_dev)
     paths = []
     for i in range(n_devices):
-        t = offsets[i] + k / (fs * (1.0 + drifts[i] * 1e-6))
-        x = bf.band_limited_at(sync[i], t * fs, cutoff=0.95) + rng.normal(0.0, sensor_noise_rms, n_dev)
+        cols = []
+        for c in np.flatnonzero(channel_device == i):
+            t = offsets[c] + k / (fs * (1.0 + drifts[c] * 1e-6))
+            cols.append(bf.band_limited_at(sync[c], t * fs, cutoff=0.95) + rng.normal(0.0, sensor_noise_rms, n_dev))
         p = out / f"dev{i:02d}.wav"
-        sf.write(p, x.astype(np.float32), fs, subtype="FLOAT")
+        sf.write(p, np.column_stack(cols).astype(np.float32), fs, subtype="FLOAT")
         paths.append(p)
+    arrays_toml = None
+    if array is not None:
+        arrays_toml = out / "arrays.toml"
+        rows = ", ".join(f"[{v[0]:.4f}, {v[1]:.4f}, {v[2]:.4f}]" for v in local)
+        arrays_toml.write_text(f'[[array]]\nname = "dev{d_arr:02d}"\nmics_m = [{rows}]\n')
     t0 = offsets[0] + k / (fs * (1.0 + drifts[0] * 1e-6))
     dist0 = np.linalg.norm(talker - pos[0])
     clean = bf.band_limited_at(dry, (t0 - dist0 / C) * fs - RIR_DELAY, cutoff=0.95)
@@ -193,7 +220,7 @@ def simulate_session(out_dir: str | Path, *, n_devices: int = 5, n_events: int =
     arrival0 = (emission + np.linalg.norm(events - pos[0], axis=1) / C - offsets[0]) * (1.0 + drifts[0] * 1e-6)
     return Session(tuple(paths), odo_path, fs, pos, offsets, drifts, events, emission, iv, clean, arrival0,
                    template, dict(chirp_duration_s=chirp_duration_s, chirp_f0_hz=chirp_f0_hz,
-                                  chirp_f1_hz=chirp_f1_hz), talker)
+                                  chirp_f1_hz=chirp_f1_hz), talker, array_rotation, arrays_toml)
 
 
 def geometry_errors(session: Session, geometry: Geometry) -> dict[str, float]:

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import collections
 import math
+import warnings
 from typing import Protocol
 
 import numba
@@ -933,7 +934,9 @@ class KalmanToa(_PairModel):
                 return False
             B = B + self._eye_m / self.initial_toa_std_s**2
         try:
-            cov_pos = scipy.linalg.inv(B, check_finite=False)
+            with warnings.catch_warnings():   # an ill-conditioned B is refused just below, not warned about
+                warnings.simplefilter("ignore", scipy.linalg.LinAlgWarning)
+                cov_pos = scipy.linalg.inv(B, check_finite=False)
             if not np.all(np.isfinite(cov_pos)) or np.linalg.cond(B) > 1e12:
                 return False
         except (np.linalg.LinAlgError, ValueError):

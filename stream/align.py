@@ -13,7 +13,7 @@ from __future__ import annotations
 import concurrent.futures
 import logging
 import time
-from typing import Iterator
+from typing import Iterator, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -240,12 +240,16 @@ class Aligner:
         A re-check runs in a worker thread (a long correlation must not stall the audio path) and its result
         is applied this many seconds of stream later, waiting for it only if it is not done by then: live,
         paced and as-fast-as-possible streams give the same output.
+    clock_groups : sequence of int, optional
+        ``clock_groups[d]``: the first device of ``d``'s clock group (the mics of one synchronous array,
+        :mod:`stream.channels`), at or before ``d``. A group shares one coarse offset, measured on its first
+        device and moved as one by re-checks and :meth:`shift_group`. Default: every device its own clock.
     """
 
     def __init__(self, n_devices: int, *, sample_rate_hz: float, hop_samples: int, align_window_s: float = 8.0,
                  max_offset_s: float = 4.0, min_quality: float = 0.15, recheck_s: float | None = 10.0,
                  recheck_tolerance_s: float = 0.01, recheck_delay_s: float = 0.5,
-                 deadline_s: float | None = 2.0) -> None:
+                 deadline_s: float | None = 2.0, clock_groups: Sequence[int] | None = None) -> None:
         if n_devices < 1:
             raise ValueError(f"{n_devices=} must be >= 1")
         if hop_samples < 1:
@@ -253,6 +257,12 @@ class Aligner:
         if not align_window_s > 0 or not max_offset_s >= 0:
             raise ValueError(f"{align_window_s=} must be > 0 s and {max_offset_s=} >= 0 s")
         self.n_devices = n_devices
+        groups = list(range(n_devices)) if clock_groups is None else [int(g) for g in clock_groups]
+        if len(groups) != n_devices or any(not 0 <= g <= d or groups[g] != g for d, g in enumerate(groups)):
+            raise ValueError(f"{clock_groups=} must give each of the {n_devices} devices the first device of its "
+                             "group (itself or an earlier device that is its own first)")
+        self.clock_groups = groups
+        self._group_of = {g: [d for d in range(n_devices) if groups[d] == g] for g in set(groups)}
         self.sample_rate_hz = float(sample_rate_hz)
         self.hop_samples = int(hop_samples)
         self.window_samples = int(align_window_s * sample_rate_hz)
@@ -350,10 +360,11 @@ class Aligner:
     def _new_clock(self, device_id: int) -> None:
         """A device restarted (a new clock): its offset to the reference is unknown again, so it leaves the beam
         until a re-check finds it (the reference restarted: every other device)."""
-        for d in ([device_id] if device_id else range(1, self.n_devices)):
+        g = self.clock_groups[device_id]   # an array restarts as one clock
+        for d in (self._group_of[g] if g else [d for d in range(self.n_devices) if self.clock_groups[d]]):
             if self.aligned[d]:
                 self.aligned[d] = False
-                msg = (f"Device {d} restarted with a new clock" if device_id else
+                msg = (f"Device {d} restarted with a new clock" if g else
                        f"The reference restarted with a new clock, so device {d}")
                 msg += " is left out of the beamformer until the next re-check of the offsets aligns it again."
                 self.messages.append(msg)
@@ -363,6 +374,11 @@ class Aligner:
         s0 = self._ref_start or 0     # a reference that joined the network late: its window starts at its audio
         ref = self._bufs[0].data[s0:s0 + self.window_samples].copy()
         for d in range(1, self.n_devices):
+            g = self.clock_groups[d]
+            if g != d:   # a mic of an array: its device's offset (the first mic's, measured before it)
+                self.offsets_samples[d], self.quality[d], self.aligned[d] = (self.offsets_samples[g],
+                                                                            self.quality[g], self.aligned[g])
+                continue
             x = self._bufs[d].data[s0:s0 + self.window_samples + int(self.max_offset_s * self.sample_rate_hz)]
             off, q = coarse_offset(ref, x, sample_rate_hz=self.sample_rate_hz, max_offset_s=self.max_offset_s)
             self.offsets_samples[d], self.quality[d] = off, q
@@ -386,6 +402,8 @@ class Aligner:
             return
         segments = {}
         for d in range(1, self.n_devices):
+            if self.clock_groups[d] != d:
+                continue
             o = int(self.offsets_samples[d])
             x = self._slice(d, ref_start + o, ref_end + o)
             if x is not None and _silent_share(x, self.sample_rate_hz) <= RECHECK_MAX_SILENT_SHARE:
@@ -406,11 +424,13 @@ class Aligner:
             if q < need or self.offsets_samples[d] != snapshot[d]:
                 continue
             if not self.aligned[d]:
-                self.aligned[d] = True
-                self.quality[d] = q
-                self.shift(d, delta, reason="device became audible with the reference; aligned now", correction=True)
+                for m in self._group_of[d]:
+                    self.aligned[m] = True
+                    self.quality[m] = q
+                self.shift_group(d, delta, reason="device became audible with the reference; aligned now",
+                                 correction=True)
             elif abs(delta) > self.recheck_tolerance_samples:
-                self.shift(d, delta, reason="periodic re-check of the coarse offset", correction=True)
+                self.shift_group(d, delta, reason="periodic re-check of the coarse offset", correction=True)
 
     def shift(self, device_id: int, delta_samples: int, *, reason: str, correction: bool = False) -> None:
         """Move a device's coarse offset by ``delta_samples`` from the next block on.
@@ -429,6 +449,11 @@ class Aligner:
         self.events.append(AlignmentEvent(t_s, device_id, old, old + int(delta_samples), reason))
         log.info("t=%.2f s: device %d coarse offset %d -> %d samples (%s).", t_s, device_id, old,
                  old + int(delta_samples), reason)
+
+    def shift_group(self, device_id: int, delta_samples: int, *, reason: str, correction: bool = False) -> None:
+        """:meth:`shift` every device of ``device_id``'s clock group (``clock_groups``) by the same amount."""
+        for d in self._group_of[self.clock_groups[device_id]]:
+            self.shift(d, delta_samples, reason=reason, correction=correction)
 
     # output ----------------------------------------------------------------------------------
     def _held_part(self, d: int, start: int, stop: int) -> tuple[int, np.ndarray] | None:

@@ -49,35 +49,48 @@ class ArraySpec:
     """One synchronous array: its recording and its mics in its own frame."""
 
     name: str
-    file: Path
+    file: Path | None
     mics_m: np.ndarray
     reference_mic: int = 0
 
 
-def load_arrays(path: str | Path) -> tuple[list[ArraySpec], dict[str, Any]]:
-    """The arrays of a TOML file (or of a folder holding ``arrays.toml``) and its top-level options."""
+def load_arrays(path: str | Path, *, streaming: bool = False) -> tuple[list[ArraySpec], dict[str, Any]]:
+    """The arrays of a TOML file (or of a folder holding ``arrays.toml``) and its top-level options.
+
+    ``streaming``: the arrays of a stream (``arrays`` engine option), matched to the stream's devices by name:
+    one array is enough, ``file`` is optional and two mics are enough (the calibration needs at least two
+    arrays, each with a recording and 4 mics not in one plane)."""
     path = Path(path)
     if path.is_dir():
         path = path / "arrays.toml"
     data = load_toml(path)
     entries = data.get("array")
-    if not isinstance(entries, list) or len(entries) < 2:
-        raise ConfigError(f"{path} must list at least two [[array]] tables (name, file, mics_m); "
+    need = 1 if streaming else 2
+    if not isinstance(entries, list) or len(entries) < need:
+        raise ConfigError(f"{path} must list at least {'one' if streaming else 'two'} [[array]] table"
+                          f"{'' if streaming else 's'} (name, {'' if streaming else 'file, '}mics_m); "
                           f"it has {len(entries) if isinstance(entries, list) else 0}.")
     specs = []
     for k, e in enumerate(entries):
         try:
             mics = np.asarray(e["mics_m"], float)
-            name, file = str(e.get("name", f"array{k}")), path.parent / str(e["file"])
+            name = str(e["name"] if streaming else e.get("name", f"array{k}"))
+            file = path.parent / str(e["file"]) if (not streaming or "file" in e) else None
         except (KeyError, TypeError, ValueError) as err:
-            raise ConfigError(f"{path}: [[array]] {k + 1} needs file and mics_m (a list of [x, y, z] in "
+            what = "name and mics_m" if streaming else "file and mics_m"
+            raise ConfigError(f"{path}: [[array]] {k + 1} needs {what} (a list of [x, y, z] in "
                               f"metres) ({err}).") from None
-        if mics.ndim != 2 or mics.shape[1] != 3 or len(mics) < 4:
-            raise ConfigError(f"{path}: array '{name}' has mics_m of shape {mics.shape}; it needs at least 4 "
-                              "mics as [x, y, z] rows (a 3-D position from TDOAs needs 4 mics not in one plane).")
+        min_mics = 2 if streaming else 4
+        if mics.ndim != 2 or mics.shape[1] != 3 or len(mics) < min_mics or not np.isfinite(mics).all():
+            why = ("a multichannel device with one mic is a single mic" if streaming else
+                   "a 3-D position from TDOAs needs 4 mics not in one plane")
+            raise ConfigError(f"{path}: array '{name}' has mics_m of shape {mics.shape}; it needs at least "
+                              f"{min_mics} mics as finite [x, y, z] rows ({why}).")
         ref = int(e.get("reference_mic", 0))
         if not 0 <= ref < len(mics):
             raise ConfigError(f"{path}: array '{name}' reference_mic {ref} is not one of its {len(mics)} mics.")
+        if any(sp.name == name for sp in specs):
+            raise ConfigError(f"{path}: two arrays are named '{name}'; each name must be unique.")
         specs.append(ArraySpec(name, file, mics, ref))
     options = {k: v for k, v in data.items() if k != "array"}
     return specs, options
@@ -221,8 +234,9 @@ def run_multi_array(arrays: str | Path, out_dir: str | Path, *, method: str = "m
         "frame": f"array '{specs[result.reference_array].name}' (the reference: identity pose); a mic at y in "
                  "array k's frame is at R_k y + t_k",
     }
-    outputs = ["arrays.json"]
+    outputs = ["arrays.json", "geometry.json"]
     (out / "arrays.json").write_text(json.dumps(summary, indent=2))
+    multi_array_geometry(specs, result, n_probes=len(matched), solve_s=summary["solve_s"]).save(out / "geometry.json")
     if plots:
         try:
             _plot(out / "arrays.png", specs, result)
@@ -231,6 +245,38 @@ def run_multi_array(arrays: str | Path, out_dir: str | Path, *, method: str = "m
             log.warning("The arrays plot could not be drawn (%s: %s); arrays.json is written.", type(err).__name__, err)
     summary["outputs"] = outputs
     return summary
+
+
+def multi_array_geometry(specs: Sequence[ArraySpec], result, *, n_probes: int, solve_s: float = float("nan")):
+    """The arrays' poses as a :class:`stream.geometry.Geometry` (the stream's geometry object): every mic a
+    device (``NAME.k``) at its posed position in the reference array's frame, each array an
+    :class:`~stream.geometry.ArrayPlacement` with its pose and standard deviations, the fused probes as the
+    events. Clock offsets and drifts between arrays are not observed by this calibration (NaN); the reference
+    array's mics share its clock (0)."""
+    from .geometry import ArrayPlacement, Geometry
+    placements, positions, names = [], [], []
+    ref = result.reference_array
+    clock = []
+    for k, (spec, pose) in enumerate(zip(specs, result.poses)):
+        first = len(names)
+        placements.append(ArrayPlacement(spec.name, range(first, first + len(spec.mics_m)), spec.mics_m,
+                                         pose.rotation_matrix, pose.translation_m, pose.rotation_std_deg,
+                                         pose.translation_std_m))
+        positions.append(pose.to_reference(spec.mics_m))
+        names += [f"{spec.name}.{m + 1}" for m in range(len(spec.mics_m))]
+        clock += [0.0 if k == ref else np.nan] * len(spec.mics_m)
+    x = np.vstack(positions)
+    clock = np.asarray(clock)
+    std = np.concatenate([np.full(len(s.mics_m), float(np.linalg.norm(p.translation_std_m)))
+                          for s, p in zip(specs, result.poses)])
+    return Geometry(positions_m=x, position_std_m=std, offsets_s=clock, offset_std_s=clock, drifts_ppm=clock,
+                    drift_std_ppm=clock, verdict="converged" if result.converged else "max_iterations",
+                    n_events=int(n_probes), method=f"multi-array ({result.method})",
+                    event_positions_m=np.asarray(result.fused_sources_m), residual_scale=float(result.variance_factor),
+                    sigma_tdoa_s=float(result.sigma_tdoa_s or np.nan), solve_time_s=float(solve_s),
+                    device_names=tuple(names), rejected=tuple(f"probe {i} is inconsistent across the arrays"
+                                                              for i in result.rejected_sources),
+                    arrays=tuple(placements))
 
 
 def _plot(path: Path, specs: Sequence[ArraySpec], result) -> None:

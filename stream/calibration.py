@@ -675,6 +675,10 @@ class StreamCalibrator:
         is adopted at the first frame boundary at or after ``t + replay_latency_s`` (stream seconds), waiting
         for the worker there if it has not finished, so that the replay gives the same result on any
         machine, however fast the stream runs past the solver (counted in ``blocks_waited_on_calibration``).
+    arrays : sequence of (name, devices, mics_m)
+        Synchronous arrays among the devices (their mics are devices of their own, :mod:`stream.channels`):
+        every adopted geometry places them (:meth:`Geometry.with_arrays`: each array's pose from its mics'
+        positions and its known internal geometry).
     """
 
     def __init__(self, n_devices: int, *, template: np.ndarray, sample_rate_hz: float, odometry: OdometryLog,
@@ -685,7 +689,8 @@ class StreamCalibrator:
                  on_geometry: Callable[[Geometry], None] | None = None,
                  executor: Literal["thread", "process"] = "thread", max_events: int = 200,
                  finish_timeout_s: float = 60.0, final_solve: bool = True,
-                 device_names: Sequence[str] = (), replay_latency_s: float | None = None) -> None:
+                 device_names: Sequence[str] = (), replay_latency_s: float | None = None,
+                 arrays: Sequence[tuple[str, Sequence[int], np.ndarray]] = ()) -> None:
         if n_devices < 3:
             raise ConfigError(f"calibration needs >= 3 devices; {n_devices=}")
         if int(recalibrate_every) < 3:
@@ -713,6 +718,7 @@ class StreamCalibrator:
         self.device_names = tuple(device_names) or tuple(f"dev{i}" for i in range(n_devices))
         self.solver = solver or calibrate
         self.on_geometry = on_geometry
+        self.arrays = tuple(arrays)
         _, iv = odometry.snapshot()
         min_sep = 0.5 * float(np.min(iv)) if len(iv) else 0.5
         min_sep = max(min_sep, 1.2 * len(template) / sample_rate_hz)
@@ -882,6 +888,8 @@ class StreamCalibrator:
             return None
         rec.status = "adopted"
         rec.adopted_at_time_s = time_s
+        if self.arrays:
+            g = g.with_arrays(self.arrays)
         self.geometry = g
         log.info("t=%.1f s: new geometry adopted (%s).", time_s, g.summary())
         if self.on_geometry is not None:

@@ -50,6 +50,9 @@ def _add_engine_options(p: argparse.ArgumentParser) -> None:
     g.add_argument("--align-recheck-s", type=float, help="re-check the coarse alignment every this many seconds")
     g.add_argument("--device-deadline-s", type=float,
                    help="a device this far behind the others is left out until it catches up (default 2 s)")
+    g.add_argument("--arrays", metavar="TOML", help="devices that are synchronous mic arrays: a TOML file with an "
+                   "[[array]] table (name = the device's name, mics_m = its mics in metres) per array; each mic "
+                   "is then a channel of its own (default: a device's channels are mixed down)")
     g.add_argument("--speed", type=float, help="pace the replay: 1.0 = real time (default: as fast as possible)")
     g.add_argument("--block-s", type=float, help="replay block length in seconds")
     g.add_argument("--no-plots", dest="plots", action="store_const", const=False, help="skip the PNG plots")
@@ -300,7 +303,10 @@ def summary(report: dict[str, Any], out: Path) -> str:
     lines.append(f"adhoc-array {kind}: {report.get('status')}  ->  {out}"
                  + (f"  (stopped by {report['stopped_by']})" if report.get("stopped_by") else ""))
     if st:
-        lines.append(f"  {st['n_devices']} devices at {st['working_rate_hz']:g} Hz, frame {st['frame_samples']} / hop "
+        n_arrays = len(report.get("arrays", {}))
+        arrays = (f" ({n_arrays} arra{'ys' if n_arrays > 1 else 'y'}: {st['n_channels']} channels)"
+                  if n_arrays else "")
+        lines.append(f"  {st['n_devices']} devices{arrays} at {st['working_rate_hz']:g} Hz, frame {st['frame_samples']} / hop "
                      f"{st['hop_samples']}, {st['audio_s']:.1f} s of audio, output latency "
                      f"{1e3 * st['output_latency_s']:.1f} ms")
         lines.append(f"  estimator {report['settings']['estimator']}: {st['n_gated']} of {st['n_blocks']} frames gated"

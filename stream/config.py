@@ -76,6 +76,8 @@ class EngineConfig:
     max_offset_s: float = 4.0
     align_recheck_s: float = 10.0
     device_deadline_s: float | None = 2.0          # a device this far behind the others is left out until it catches up
+    # devices that are synchronous mic arrays (stream.channels): an arrays file ([[array]] name, mics_m)
+    arrays: str | None = None
     # replay
     speed: float | None = None
     block_s: float = 0.05

@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["Geometry", "load_geometry", "plot_geometry", "GEOMETRY_FORMAT"]
+__all__ = ["ArrayPlacement", "Geometry", "load_geometry", "plot_geometry", "GEOMETRY_FORMAT"]
 
 GEOMETRY_FORMAT = "adhoc-array geometry v1"
 
@@ -44,6 +44,127 @@ def _frozen(a, *, ndim: int, name: str) -> np.ndarray:
         raise ValueError(f"{name} has shape {out.shape}; expected {ndim} dimension(s)")
     out.setflags(write=False)
     return out
+
+
+@dataclasses.dataclass(frozen=True)
+class ArrayPlacement:
+    """A synchronous array among a geometry's devices: its mics in its own frame and its pose in the geometry's
+    frame, ``x = rotation_matrix @ x_array + translation_m``.
+
+    Attributes
+    ----------
+    name : str
+    channels : tuple of int
+        The geometry's devices that are its mics: mic ``k`` (row ``k`` of ``mics_m``) is device ``channels[k]``.
+    mics_m : ndarray, shape (n_mics, 3)
+        The mics in the array's own frame (its known internal geometry), metres.
+    rotation_matrix : ndarray, shape (3, 3)
+        NaN when the mics cannot fix a rotation (fewer than 3, or in one line).
+    translation_m : ndarray, shape (3,)
+    rotation_std_deg : ndarray, shape (3,)
+        Standard deviation of small rotations about the geometry's x, y, z axes, degrees.
+    translation_std_m : ndarray, shape (3,)
+    fit_rms_m : float
+        RMS distance between the mics' own position estimates and the posed mics (NaN for a pose that was
+        solved as a pose).
+    """
+
+    name: str
+    channels: tuple[int, ...]
+    mics_m: np.ndarray
+    rotation_matrix: np.ndarray
+    translation_m: np.ndarray
+    rotation_std_deg: np.ndarray = dataclasses.field(default_factory=lambda: np.full(3, np.nan))
+    translation_std_m: np.ndarray = dataclasses.field(default_factory=lambda: np.full(3, np.nan))
+    fit_rms_m: float = float("nan")
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "channels", tuple(int(c) for c in self.channels))
+        object.__setattr__(self, "mics_m", _frozen(self.mics_m, ndim=2, name="mics_m"))
+        for name, shape in (("rotation_matrix", (3, 3)), ("translation_m", (3,)), ("rotation_std_deg", (3,)),
+                            ("translation_std_m", (3,))):
+            a = _frozen(getattr(self, name), ndim=len(shape), name=name)
+            if a.shape != shape:
+                raise ValueError(f"{name} has shape {a.shape}; expected {shape}")
+            object.__setattr__(self, name, a)
+        if self.mics_m.shape != (len(self.channels), 3):
+            raise ValueError(f"mics_m has shape {self.mics_m.shape}; expected ({len(self.channels)}, 3), one row "
+                             "per channel")
+
+    @property
+    def posed(self) -> bool:
+        """Whether the pose is known (a rotation could be fixed)."""
+        return bool(np.all(np.isfinite(self.rotation_matrix)) and np.all(np.isfinite(self.translation_m)))
+
+    @property
+    def rotation_deg(self) -> np.ndarray:
+        """``(roll, pitch, yaw)`` of ``rotation_matrix``, degrees (NaN when not posed)."""
+        if not self.posed:
+            return np.full(3, np.nan)
+        from estimators.multi_array import rotation_deg_from_matrix
+        return rotation_deg_from_matrix(self.rotation_matrix)
+
+    def mic_positions_m(self) -> np.ndarray:
+        """The mics in the geometry's frame, ``mics_m @ R.T + t`` (NaN when not posed), shape (n_mics, 3)."""
+        return self.mics_m @ self.rotation_matrix.T + self.translation_m
+
+    @classmethod
+    def fit(cls, name: str, channels, mics_m, positions_m, position_std_m=None) -> "ArrayPlacement":
+        """The pose that puts the array's mics (``mics_m``, its own frame) best onto their estimated positions
+        (``positions_m``, one per mic, the geometry's frame): weighted Kabsch (weights ``1 / std^2``).
+
+        Standard deviations take isotropic errors per mic of ``sigma`` per axis: the larger of the stated
+        CRLB (``std / sqrt(3)``) and the fit's own residual. The rotation's about axis ``a`` is ``sigma`` over
+        the root of the summed squared distances of the mics from the axis through their centroid
+        (small-angle least squares, the mics' errors independent); the translation's is ``sigma`` itself, not
+        ``sigma / sqrt(n_mics)``: the mics of one array share a clock, and the errors of their positions
+        along the common direction are nearly the same.
+        """
+        from estimators.multi_array import rigid_transform
+        local = np.asarray(mics_m, float)
+        x = np.asarray(positions_m, float)
+        k = len(local)
+        std = np.full(k, np.nan) if position_std_m is None else np.asarray(position_std_m, float)
+        ok = np.all(np.isfinite(x), axis=1)
+        nan3 = np.full(3, np.nan)
+        if ok.sum() < 3:
+            return cls(name, channels, local, np.full((3, 3), np.nan), nan3)
+        w = np.where(np.isfinite(std) & (std > 0), 1.0 / np.maximum(std, 1e-12) ** 2, 1.0)[ok]
+        try:
+            pose = rigid_transform(local[ok], x[ok], w / w.sum())
+        except ValueError:   # collinear mics: no rotation about their line
+            return cls(name, channels, local, np.full((3, 3), np.nan), nan3)
+        posed = pose.to_reference(local)
+        resid = np.linalg.norm(posed[ok] - x[ok], axis=1)
+        n_ok = int(ok.sum())
+        fit_rms = float(np.sqrt(np.mean(resid ** 2)))
+        stated = float(np.sqrt(np.nanmean(std[ok] ** 2))) if np.any(np.isfinite(std[ok])) else 0.0
+        dof = max(3 * n_ok - 6, 1)
+        sigma_axis = max(stated / math.sqrt(3.0), fit_rms * math.sqrt(n_ok / dof))
+        d = posed[ok] - posed[ok].mean(axis=0)
+        lever2 = np.array([np.sum(d ** 2) - np.sum(d[:, a] ** 2) for a in range(3)])
+        rot_std = np.degrees(sigma_axis / np.sqrt(np.maximum(lever2, 1e-300)))
+        return cls(name, channels, local, pose.rotation_matrix, pose.translation_m, rot_std,
+                   np.full(3, sigma_axis), fit_rms)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"name": self.name, "channels": list(self.channels),
+                "mics_m": [[_num(c) for c in row] for row in self.mics_m],
+                "rotation_matrix": [[_num(c) for c in row] for row in self.rotation_matrix],
+                "rotation_deg": [_num(c) for c in self.rotation_deg],
+                "rotation_std_deg": [_num(c) for c in self.rotation_std_deg],
+                "translation_m": [_num(c) for c in self.translation_m],
+                "translation_std_m": [_num(c) for c in self.translation_std_m],
+                "fit_rms_m": _num(self.fit_rms_m)}
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> "ArrayPlacement":
+        def arr(v):
+            a = np.array(v, dtype=object)
+            return np.where(a == None, np.nan, a).astype(float)  # noqa: E711 - JSON null is NaN
+        return cls(str(data["name"]), tuple(data["channels"]), arr(data["mics_m"]), arr(data["rotation_matrix"]),
+                   arr(data["translation_m"]), arr(data["rotation_std_deg"]), arr(data["translation_std_m"]),
+                   float("nan") if data.get("fit_rms_m") is None else float(data["fit_rms_m"]))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -90,6 +211,9 @@ class Geometry:
     device_names : tuple of str
     rejected : tuple of str
         The measurements the solver rejected as gross errors, one sentence each (what, by how much, why).
+    arrays : tuple of ArrayPlacement
+        The synchronous arrays among the devices (each mic a device), with their poses in this frame
+        (:meth:`with_arrays`); the other devices are single mics.
     """
 
     positions_m: np.ndarray
@@ -112,6 +236,7 @@ class Geometry:
     first_event: int = 0
     device_names: tuple[str, ...] = ()
     rejected: tuple[str, ...] = ()
+    arrays: tuple[ArrayPlacement, ...] = ()
 
     def __post_init__(self) -> None:
         for name in _ARRAYS:
@@ -132,6 +257,31 @@ class Geometry:
         object.__setattr__(self, "device_names", tuple(str(s) for s in self.device_names))
         if self.device_names and len(self.device_names) != n:
             raise ValueError(f"{len(self.device_names)=} must equal n_devices={n}")
+        object.__setattr__(self, "arrays", tuple(self.arrays))
+        for a in self.arrays:
+            if any(not 0 <= c < n for c in a.channels):
+                raise ValueError(f"array '{a.name}' names channels {a.channels}; the geometry has {n} devices")
+
+    def with_arrays(self, arrays) -> "Geometry":
+        """This geometry with its synchronous arrays placed: for each ``(name, channels, mics_m)`` (the devices
+        that are the array's mics, and the mics in the array's own frame), the pose fitted to those devices'
+        positions (:meth:`ArrayPlacement.fit`)."""
+        for name, channels, _ in arrays:
+            if any(not 0 <= int(c) < self.n_devices for c in channels):
+                raise ValueError(f"array '{name}' names channels {list(channels)}; the geometry has "
+                                 f"{self.n_devices} devices")
+        placed = tuple(ArrayPlacement.fit(name, channels, mics, self.positions_m[list(channels)],
+                                          self.position_std_m[list(channels)]) for name, channels, mics in arrays)
+        return dataclasses.replace(self, arrays=placed)
+
+    def mic_positions_m(self) -> np.ndarray:
+        """Every device's position: an array's mics from its pose and internal geometry (where posed), the
+        other devices as solved, shape (n_devices, 3), metres."""
+        x = self.positions_m.copy()
+        for a in self.arrays:
+            if a.posed:
+                x[list(a.channels)] = a.mic_positions_m()
+        return x
 
     # clock model -----------------------------------------------------------------------------
     @property
@@ -183,6 +333,9 @@ class Geometry:
         out: dict[str, Any] = {"format": GEOMETRY_FORMAT}
         for f in dataclasses.fields(self):
             v = getattr(self, f.name)
+            if f.name == "arrays":
+                out["arrays"] = [a.to_dict() for a in v]
+                continue
             if isinstance(v, np.ndarray):
                 v = [[_num(c) for c in row] for row in v] if v.ndim == 2 else [_num(c) for c in v]
             elif isinstance(v, float):
@@ -211,6 +364,8 @@ class Geometry:
                 value = int(value)
             elif key in ("device_names", "rejected"):
                 value = tuple(value)
+            elif key == "arrays":
+                value = tuple(ArrayPlacement.from_dict(a) for a in value)
             kw[key] = value
         return cls(**kw)
 
@@ -265,8 +420,9 @@ def plot_geometry(path: str | Path, geometry: Geometry, *, truth_positions_m: np
     g = geometry
     names = list(g.device_names) or [f"dev{i}" for i in range(g.n_devices)]
     n_rows = min(g.n_devices, 12)
-    fig = plt.figure(figsize=(13, 6.4 + 0.19 * n_rows), constrained_layout=True)
-    grid = fig.add_gridspec(2, 2, height_ratios=[6.0, 0.4 + 0.19 * n_rows])
+    n_lines = n_rows + len(g.arrays)
+    fig = plt.figure(figsize=(13, 6.4 + 0.19 * n_lines), constrained_layout=True)
+    grid = fig.add_gridspec(2, 2, height_ratios=[6.0, 0.4 + 0.19 * n_lines])
     axes = [fig.add_subplot(grid[0, 0]), fig.add_subplot(grid[0, 1])]
     offsets = [(7, 6), (7, -14), (-16, 6), (-16, -14)]
     for ax, b, label in zip(axes, (1, 2), ("top view (x-y)", "side view (x-z)")):
@@ -291,6 +447,14 @@ def plot_geometry(path: str | Path, geometry: Geometry, *, truth_positions_m: np
                                     zorder=2))
             ax.annotate(str(i), x[i, [a, b]], textcoords="offset points", xytext=offsets[i % 4], fontsize=11,
                         fontweight="bold", color="navy", zorder=6)
+        for arr in g.arrays:   # a posed array: its mics where its pose puts them, joined in mic order
+            if arr.posed:
+                m = arr.mic_positions_m()
+                ring = np.vstack([m, m[:1]])
+                ax.plot(ring[:, a], ring[:, b], ".-", color="tab:purple", lw=1, ms=5, zorder=5,
+                        label="arrays (posed)" if arr is next(q for q in g.arrays if q.posed) else None)
+                ax.annotate(arr.name, m[:, [a, b]].mean(axis=0), textcoords="offset points", xytext=(0, -18),
+                            fontsize=10, color="tab:purple", ha="center", zorder=6)
         if truth_positions_m is not None:
             t = np.asarray(truth_positions_m, float)
             ax.plot(t[:, a], t[:, b], "x", ms=10, mew=2, color="tab:green", zorder=5, label="devices (truth)")
@@ -312,6 +476,12 @@ def plot_geometry(path: str | Path, geometry: Geometry, *, truth_positions_m: np
             for i in range(n_rows)]
     if g.n_devices > n_rows:
         rows.append(f"   ... {g.n_devices - n_rows} more devices in geometry.json")
+    for arr in g.arrays:
+        rows.append(f"   array {arr.name} (devices {arr.channels[0]}-{arr.channels[-1]}): "
+                    + (f"roll/pitch/yaw ({', '.join(f'{v:+.1f}' for v in arr.rotation_deg)}) ± "
+                       f"{np.nanmax(arr.rotation_std_deg):.1f} deg, at ({', '.join(f'{v:+.2f}' for v in arr.translation_m)}) "
+                       f"± {np.nanmax(arr.translation_std_m):.3f} m, fit {1e3 * arr.fit_rms_m:.1f} mm"
+                       if arr.posed else "no pose (its mics cannot fix a rotation)"))
     table.text(0.0, 1.0, "\n".join(rows), transform=table.transAxes, va="top", ha="left", fontsize=9,
                family="monospace")
     fig.suptitle(title or f"{g.method} calibration: {g.n_devices} devices, {g.n_events} events, verdict "

@@ -70,8 +70,10 @@ class StatusLine:
             need_s = (pipeline.aligner.window_samples / fs) + pipeline.aligner.max_offset_s
             parts[0] += f" (aligning the devices: first output after {need_s:.1f} s)"
         levels = 10 * np.log10(np.maximum(self._level, 1e-12)) if self._level is not None else []
+        groups = pipeline.aligner.clock_groups   # one clock group per device (an array's mics: one group)
+        first = sorted(set(groups))
         for d, (info, lvl) in enumerate(zip(self.source.active, levels)):
-            clip = pipeline.conditioners[d].counters.n_clipped_samples
+            clip = sum(c.counters.n_clipped_samples for c, g in zip(pipeline.conditioners, groups) if g == first[d])
             parts.append(f"{info.name} {lvl:4.0f} dBFS" + (f" clip {clip}" if clip else ""))
         n_ovf = sum(d.n_overflows for d in self.source.active)
         n_gap = sum(d.n_gaps for d in self.source.active)

@@ -179,11 +179,15 @@ class Pipeline:
     speech : object, optional
         Speech presence per hop for ``estimator = "tracks"`` (``process(samples, valid) -> SpeechFrame``);
         default :func:`stream.speech.make_speech_presence` with ``config.vad``.
+    clock_groups : sequence of int, optional
+        The first device of each device's clock group: the mics of one array (:mod:`stream.channels`) share
+        one coarse offset (:class:`~stream.align.Aligner`). Default: every device its own clock.
     """
 
     def __init__(self, config: EngineConfig, device_rates_hz: Iterable[float], *, keep_input: bool = False,
                  rate_ratios: Iterable[float] | None = None, calibrator: StreamCalibrator | None = None,
-                 device_names: Sequence[str] = (), speech=None, history_cap: int | None = None) -> None:
+                 device_names: Sequence[str] = (), speech=None, history_cap: int | None = None,
+                 clock_groups: Sequence[int] | None = None) -> None:
         self.config = config
         rates = list(device_rates_hz)
         self.n_devices = len(rates)
@@ -202,7 +206,8 @@ class Pipeline:
             calibrator.bind([c.clock for c in self.conditioners])
         self.aligner = Aligner(self.n_devices, sample_rate_hz=fs, hop_samples=config.hop_samples,
                                align_window_s=config.align_window_s, max_offset_s=config.max_offset_s,
-                               recheck_s=config.align_recheck_s, deadline_s=config.device_deadline_s)
+                               recheck_s=config.align_recheck_s, deadline_s=config.device_deadline_s,
+                               clock_groups=clock_groups)
         self.stft = beamform.StreamingStft(self.n_devices, frame_samples=config.frame_samples,
                                            hop_samples=config.hop_samples)
         self.gcc = None
@@ -535,8 +540,9 @@ class Pipeline:
         pending = block.offsets_samples != self.aligner.offsets_samples   # a shift not yet in effect
         fs = self.config.working_rate_hz
         moved = False
-        for d in np.flatnonzero((np.abs(median) > limit) & ~pending):
-            self.aligner.shift(int(d), int(round(median[d] * fs)), reason="fine TOA near the search limit")
+        first = np.asarray(self.aligner.clock_groups) == np.arange(self.n_devices)   # an array moves as one clock
+        for d in np.flatnonzero((np.abs(median) > limit) & ~pending & first):
+            self.aligner.shift_group(int(d), int(round(median[d] * fs)), reason="fine TOA near the search limit")
             self.counters.n_recentred += 1
             moved = True
         if moved:

@@ -22,6 +22,7 @@ from .errors import AdhocArrayError, InputFileError, StreamError
 from .fixture import Fixture, is_fixture_dir, load_fixture
 from .geometry import Geometry
 from .pipeline import Pipeline
+from .channels import ChannelLayout
 from .messages import HopSink
 from .stopping import install_stop_handlers as _install_stop_handlers
 from .replay import ReplaySource
@@ -94,10 +95,23 @@ def _load_recording(manifest: Path) -> tuple[list[Path], list[str], dict[str, An
     return paths, names, engine
 
 
+def channel_layout(cfg: EngineConfig, devices: Sequence, fixture: Fixture | None = None) -> ChannelLayout:
+    """The stream's channels (:mod:`stream.channels`): the devices, an array named in ``cfg.arrays`` as one
+    channel per mic. A relative ``arrays`` path is looked up in the current folder, then in the fixture's."""
+    if not cfg.arrays:
+        return ChannelLayout(devices)
+    from .arrays import load_arrays
+    path = Path(cfg.arrays)
+    if not path.exists() and fixture is not None and (fixture.root / path).exists():
+        path = fixture.root / path
+    specs, _ = load_arrays(path, streaming=True)
+    return ChannelLayout(devices, specs)
+
+
 def make_calibrator(cfg: EngineConfig, n_devices: int, out: Path, *, device_names: Sequence[str] = (),
                     solver: Callable[[CalibrationSnapshot], Geometry] | None = None,
                     on_geometry: Callable[[Geometry], None] | None = None,
-                    live: bool = False) -> StreamCalibrator | None:
+                    live: bool = False, layout: ChannelLayout | None = None) -> StreamCalibrator | None:
     """The stream's calibrator from the resolved options (None when ``calibration_odometry`` is unset).
 
     Every adopted geometry is written to ``out/geometry.json`` (atomically) and then handed to
@@ -126,7 +140,8 @@ def make_calibrator(cfg: EngineConfig, n_devices: int, out: Path, *, device_name
         threshold=cfg.chirp_threshold, solver=solver, on_geometry=publish, executor=cfg.calibration_executor,
         max_events=cfg.calibration_max_events, device_names=device_names,
         # unpaced replay: adopt solves at fixed stream times (reproducible); paced (fake live): never wait
-        replay_latency_s=cfg.calibration_replay_latency_s if (cfg.speed is None and not live) else None)
+        replay_latency_s=cfg.calibration_replay_latency_s if (cfg.speed is None and not live) else None,
+        arrays=layout.placements() if layout is not None else ())
 
 
 def _layered(cfg: EngineConfig, fixture: Fixture | None,
@@ -205,6 +220,7 @@ def run_stream(source, out_dir: str | Path, *, config: EngineConfig, fixture: Fi
     report: dict[str, Any] = {"status": "ok", "inputs": [], "live": bool(getattr(source, "live", False))}
     pipeline = None
     calibrator = None
+    layout = None
     wav = csv_sink = None
     steady: list[tuple[float, float]] = []   # (process, wall) time at the first hop out and at the input's end
     stopped: list[str] = []
@@ -230,14 +246,17 @@ def run_stream(source, out_dir: str | Path, *, config: EngineConfig, fixture: Fi
             elif history_cap is not None and history_cap < 0:   # keep everything, whatever the length
                 history_cap = None
             keep = fixture is not None and history_cap is None
-            calibrator = make_calibrator(cfg, len(src.active), out, device_names=[d.name for d in src.active],
-                                         solver=solver, on_geometry=on_geometry, live=report["live"])
-            pipeline = Pipeline(cfg, src.sample_rates_hz, keep_input=keep, calibrator=calibrator,
-                                device_names=[d.name for d in src.active], speech=speech, history_cap=history_cap)
+            layout = channel_layout(cfg, src.active, fixture)
+            if not layout.identity:
+                report["arrays"] = layout.report()
+            calibrator = make_calibrator(cfg, len(layout.channels), out, device_names=layout.names,
+                                         solver=solver, on_geometry=on_geometry, live=report["live"], layout=layout)
+            pipeline = Pipeline(cfg, layout.sample_rates_hz, keep_input=keep, calibrator=calibrator,
+                                device_names=layout.names, speech=speech, history_cap=history_cap,
+                                clock_groups=layout.clock_groups)
             wav = sinks.WavSink(out / "enhanced.wav", sample_rate_hz=cfg.working_rate_hz,
                                 skip_samples=pipeline.latency_samples)
-            csv_sink = sinks.ToaCsvSink(out / "toa.csv", [d.name for d in src.active],
-                                        tracks=pipeline.tracker is not None)
+            csv_sink = sinks.ToaCsvSink(out / "toa.csv", layout.names, tracks=pipeline.tracker is not None)
 
             hop_sinks = [wav, csv_sink, *extra_sinks]
 
@@ -256,7 +275,11 @@ def run_stream(source, out_dir: str | Path, *, config: EngineConfig, fixture: Fi
                 for frame in src:
                     if on_frame is not None:
                         on_frame(frame)
-                    write(pipeline.feed(frame))
+                    if layout.identity:
+                        write(pipeline.feed(frame))
+                    else:
+                        for part in layout.split(frame):   # an array's mics, one channel each
+                            write(pipeline.feed(part))
                     if frame.device_id == 0 and duration is not None:
                         bar.update(min(len(frame.samples) / frame.sample_rate_hz, bar.total - bar.n))
                     if status is not None and time.perf_counter() >= next_status:
@@ -288,14 +311,16 @@ def run_stream(source, out_dir: str | Path, *, config: EngineConfig, fixture: Fi
             calibrator.close()
         if extra_report is not None:
             extra_report(report)
-        _finalise(report, out, cfg, pipeline, fixture, names, collector, t_wall0, t_cpu0, wav, csv_sink, steady)
+        _finalise(report, out, cfg, pipeline, layout, fixture, names, collector, t_wall0, t_cpu0, wav, csv_sink,
+                  steady)
         raise
     restore()
     if calibrator is not None:
         calibrator.close()
     if extra_report is not None:
         extra_report(report)
-    _finalise(report, out, cfg, pipeline, fixture, names, collector, t_wall0, t_cpu0, wav, csv_sink, steady)
+    _finalise(report, out, cfg, pipeline, layout, fixture, names, collector, t_wall0, t_cpu0, wav, csv_sink,
+                  steady)
     return RunOutcome(report, pipeline, out)
 
 
@@ -322,7 +347,7 @@ def observed_drift_ppm(time_s: np.ndarray, toa_s: np.ndarray, gated: np.ndarray,
     return out
 
 
-def _finalise(report, out, cfg, pipeline, fixture, names, collector, t_wall0, t_cpu0, wav, csv_sink,
+def _finalise(report, out, cfg, pipeline, layout, fixture, names, collector, t_wall0, t_cpu0, wav, csv_sink,
               steady) -> None:
     for s in (wav, csv_sink):
         if s is not None:
@@ -337,7 +362,9 @@ def _finalise(report, out, cfg, pipeline, fixture, names, collector, t_wall0, t_
         audio_s = n_blocks * cfg.hop_samples / fs
         ht = pipeline.hop_times
         report["stream"] = {
-            "n_devices": pipeline.n_devices,
+            "n_devices": layout.n_devices,
+            "n_channels": pipeline.n_devices,   # an array's mics are channels of their own (stream.channels)
+            "channels": layout.names,
             "working_rate_hz": fs,
             "frame_samples": cfg.frame_samples,
             "hop_samples": cfg.hop_samples,
@@ -358,21 +385,28 @@ def _finalise(report, out, cfg, pipeline, fixture, names, collector, t_wall0, t_
             "observed_drift_ppm": observed_drift_ppm(*pipeline.toa_track()).tolist(),
         }
         active = [d for d in report.get("devices", []) if d["usable"]]
-        for info, counters, checker in zip(active, pipeline.device_counters, pipeline.checkers):
-            info.update(vars(counters))
-            info.update(vars(checker.counters))
-            if checker.counters.n_gaps:
+        for channel, counters, checker in zip(layout.channels, pipeline.device_counters, pipeline.checkers):
+            info = active[channel.device_id]
+            if channel.mic >= 0:   # one mic of an array: its counters go in the device's list of mics
+                mics = info.setdefault("mics", [])
+                mics.append({"name": channel.name, **vars(counters), **vars(checker.counters)})
+                if channel.mic == 0:
+                    info.update(vars(checker.counters))   # gaps are the device's: every mic has the same
+            else:
+                info.update(vars(counters))
+                info.update(vars(checker.counters))
+            if checker.counters.n_gaps and channel.mic <= 0:
                 info["problems"].append(f"Device '{info['name']}': {checker.counters.n_gap_samples} samples were "
                                         f"lost in {checker.counters.n_gaps} gaps (filled with zeros and left out "
                                         "of the beam).")
             if counters.n_nan_samples:
-                info["problems"].append(f"Device '{info['name']}': {counters.n_nan_samples} non-finite samples "
+                info["problems"].append(f"Device '{channel.name}': {counters.n_nan_samples} non-finite samples "
                                         "were replaced by zeros.")
             if counters.n_clipped_samples:
-                info["problems"].append(f"Device '{info['name']}': {counters.n_clipped_samples} samples are "
+                info["problems"].append(f"Device '{channel.name}': {counters.n_clipped_samples} samples are "
                                         "clipped (at full scale).")
             if counters.n_blocks and counters.n_silent_blocks == counters.n_blocks:
-                info["problems"].append(f"Device '{info['name']}' is silent throughout; it is left out of the "
+                info["problems"].append(f"Device '{channel.name}' is silent throughout; it is left out of the "
                                         "beamformer.")
         report["timing"] = {
             "wall_s": wall_s,
@@ -418,14 +452,16 @@ def _finalise(report, out, cfg, pipeline, fixture, names, collector, t_wall0, t_
                                 type(err).__name__, err)
         if fixture is not None and report["status"] == "ok":
             from .evaluate import evaluate_run
-            index = [names.index(d["name"]) for d in active] if names else list(range(pipeline.n_devices))
+            # an array's mics are scored against their device's truth (its position: the mics are centimetres apart)
+            index = ([names.index(active[c.device_id]["name"]) for c in layout.channels] if names else
+                     [c.device_id for c in layout.channels])
             try:
                 report["metrics"] = evaluate_run(pipeline, fixture, index)
             except Exception as err:  # noqa: BLE001 - scoring must not lose the outputs
                 log.exception("Scoring against the fixture's truth failed")
                 report["metrics_error"] = f"{type(err).__name__}: {err}"
         if cfg.plots and n_blocks:
-            _plots(out, pipeline, fixture, report, names, cfg)
+            _plots(out, pipeline, layout, fixture, names, cfg)
     report["messages"] = collector.messages
     report["outputs"] = sorted(p.name for p in out.iterdir())
     if "report.json" not in report["outputs"]:
@@ -433,30 +469,32 @@ def _finalise(report, out, cfg, pipeline, fixture, names, collector, t_wall0, t_
     sinks.write_json(out / "report.json", report)
 
 
-def _plots(out: Path, pipeline: Pipeline, fixture: Fixture | None, report: dict, names, cfg: EngineConfig) -> None:
+def _plots(out: Path, pipeline: Pipeline, layout: ChannelLayout, fixture: Fixture | None, names,
+           cfg: EngineConfig) -> None:
     from . import metrics, plots
     try:
         time_s, toa_s, gated = pipeline.toa_track()
         true_t = true_toa = None
-        dev_names = [d["name"] for d in report.get("devices", []) if d["usable"]]
+        dev_names = layout.names
+        # each channel's device in the fixture (an array's mics: their device)
+        index = ([names.index(layout.device_names[c.device_id]) for c in layout.channels] if names else
+                 [c.device_id for c in layout.channels])
         if fixture is not None and fixture.truth_toa is not None:
-            index = [names.index(n) for n in dev_names]
             true_t, true_all = fixture.load_truth_toa()
             true_toa = true_all[:, index] - true_all[:, index[:1]]
         plots.plot_toa_tracks(out / "toa_tracks.png", time_s=time_s, toa_s=toa_s, true_time_s=true_t,
                               true_toa_s=true_toa, gated=gated, device_names=dev_names,
                               title=f"Relative TOA ({cfg.estimator})")
         if pipeline.tracker is not None and pipeline.state.source_tracks:
-            index = [names.index(n) for n in dev_names] if names else list(range(len(dev_names)))
             truth = None
             if fixture is not None and fixture.sources:
                 truth = {}
                 for src in fixture.sources:
                     tv = fixture.source_toa_at(src.name, time_s)
                     truth[src.name] = (time_s, tv[:, index])
-            tracks = {k: {"kind": h["kind"], "time_s": h["time_s"],
-                          "toa_s": [np.asarray(v)[index] for v in h["toa_s"]]} for k, h in
-                      pipeline.state.source_tracks.items()}
+            # the tracks are the pipeline's channels already (the truth was mapped to them above)
+            tracks = {k: {"kind": h["kind"], "time_s": h["time_s"], "toa_s": list(h["toa_s"])}
+                      for k, h in pipeline.state.source_tracks.items()}
             plots.plot_source_tracks(out / "sources.png", tracks=tracks, time_s=time_s,
                                      steered_id=np.asarray(pipeline.state.track_id), truth=truth,
                                      device_names=dev_names, title="Tracked sources (steered: thick)")

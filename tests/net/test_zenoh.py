@@ -392,3 +392,39 @@ def test_a_reference_that_never_comes_does_not_hold_the_stream(procs, tmp_path):
     assert rep["stream"]["aligned"][:3] == [True, False, True], rep["stream"]["aligned"]
     x1 = sf.read(FX / "dev01.flac")[0]
     assert np.std(y) > 0.3 * np.std(x1), (np.std(y), np.std(x1))
+
+
+def test_a_device_that_is_an_array_streams_every_mic(procs, tmp_path):
+    """A 4-channel device (meeting_table's phone 0 and three copies of it a sample or two later, one clock) and
+    a phone into an aggregator told by ``--arrays`` that the first is an array: each of its channels is a channel
+    of the engine, with one coarse offset, and the output is replay's of the same files, sample for sample."""
+    from stream.live import LIVE_DEFAULTS
+    from stream.run import run_replay
+    x0 = sf.read(FX / "dev00.flac", dtype="float32")[0]
+    quad = np.column_stack([np.r_[np.zeros(k, np.float32), x0[:len(x0) - k]] for k in (0, 1, 2, 1)])
+    sf.write(tmp_path / "quad.wav", quad, RATE, subtype="FLOAT")
+    arrays = tmp_path / "arrays.toml"
+    arrays.write_text('[[array]]\nname = "quad"\nmics_m = [[0, 0, 0], [0.02, 0, 0], [0.04, 0, 0], [0.02, 0.02, 0]]\n')
+    port, out = _port(), tmp_path / "agg"
+    ep = f"tcp/127.0.0.1:{port}"
+    agg = _spawn(procs, "aggregate", "--out", out, "--listen", ep, "--no-scouting", "--array", "t9",
+                 "--expect", "quad,phone1", "--until-done", "--discover-s", 30, "--no-plots", "--arrays", arrays)
+    _spawn(procs, "device", "--name", "quad", "--input", tmp_path / "quad.wav", "--array", "t9", "--no-scouting",
+           "--wait-aggregator", 30, "--connect", ep)
+    _device(procs, 1, "t9", "--connect", ep)
+    stdout, stderr = _finish(agg, 60)
+    assert agg.returncode == 0, stderr[-3000:]
+    rep = _report(out)
+    assert rep["status"] == "ok" and rep["stream"]["channels"] == ["quad.1", "quad.2", "quad.3", "quad.4", "phone1"]
+    assert len(set(rep["stream"]["coarse_offsets_s"][:4])) == 1 and rep["network"]["devices"]["quad"]["n_lost_frames"] == 0
+    assert "2 devices (1 array: 5 channels)" in stdout
+    leads = [rep["network"]["devices"][n]["start_sample"] for n in ("quad", "phone1")]
+    x1 = sf.read(FX / "dev01.flac", dtype="float32")[0]
+    (tmp_path / "placed").mkdir()
+    files = [tmp_path / "placed" / "quad.wav", tmp_path / "placed" / "phone1.wav"]   # replay names devices by stem
+    sf.write(files[0], np.r_[np.zeros((leads[0], 4), np.float32), quad], RATE, subtype="FLOAT")
+    sf.write(files[1], np.r_[np.zeros(leads[1], np.float32), x1], RATE, subtype="FLOAT")
+    ref = run_replay(files, tmp_path / "replay", overrides=[(dict(LIVE_DEFAULTS, plots=False, arrays=str(arrays)),
+                                                            "test")])
+    assert ref.report["stream"]["channels"] == rep["stream"]["channels"]
+    np.testing.assert_array_equal(ref.pipeline.enhanced_signal(), sf.read(out / "enhanced.wav", dtype="float32")[0])

@@ -10,6 +10,7 @@ import soundfile as sf
 
 from stream.arrays import detect_probes, match_probes
 from stream.cli import main
+from stream.geometry import load_geometry
 
 FS = 48000
 C = 343.0
@@ -70,6 +71,13 @@ def test_the_pose_of_a_second_array_comes_back_from_its_recording(tmp_path, caps
     assert all(s < 0.1 for s in shelf["translation_std_m"])
     assert (tmp_path / "out" / "arrays.png").stat().st_size > 10_000
     assert "shelf" in shown and "yaw" in shown
+    # the same poses as the stream's geometry object: every mic a device, each array placed
+    g = load_geometry(tmp_path / "out" / "geometry.json")
+    assert g.device_names[:9] == ("table.1", "table.2", "table.3", "table.4", "table.5", "table.6", "table.7",
+                                  "table.8", "shelf.1") and [a.name for a in g.arrays] == ["table", "shelf"]
+    np.testing.assert_allclose(g.arrays[1].rotation_matrix, R)
+    np.testing.assert_allclose(g.mic_positions_m()[8:], CUBE @ R.T + np.asarray(shelf["translation_m"]), atol=1e-9)
+    assert np.isnan(g.offsets_s[8]) and g.offsets_s[0] == 0   # the arrays' clocks are not observed here
 
 
 def test_probes_are_matched_across_clocks_even_with_one_missed():

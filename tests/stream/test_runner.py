@@ -285,8 +285,10 @@ def test_leading_digital_silence_does_not_mislead_the_first_alignment(tmp_path):
 def test_the_report_times_the_running_stream_apart_from_its_start(tmp_path):
     """``timing.running_cpu_share``: CPU over wall time from the first hop out to the end of the input, without
     the start-up (the first alignment's wait, the kernels) and the report; as fast as possible it is about one
-    core (every thread counts: at most two here)."""
+    core on an idle machine (every thread counts: at most two here). The window is a few tens of milliseconds
+    here, so another job on the machine can take most of it: only the bounds are tested."""
     rep = run_replay([REPO_FIXTURES / "walking_talker"], tmp_path, config=EngineConfig(plots=False, progress=False)).report
     t = rep["timing"]
     assert 0 < t["running_wall_s"] < t["wall_s"]
-    assert 0.2 < t["running_cpu_share"] < 2.1, t
+    assert 0 < t["running_cpu_share"] < 2.1, t
+    assert t["running_cpu_share"] * t["running_wall_s"] <= t["cpu_s"], t
