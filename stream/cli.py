@@ -135,7 +135,7 @@ def _run_net(args: argparse.Namespace) -> int:
     expect = [n.strip() for n in args.expect.split(",") if n.strip()] if args.expect else []
     outcome = net.run_aggregate(args.out, _net(args), array=args.array, expect=expect, discover_s=args.discover_s,
                                 jitter_s=args.jitter_s, until_done=args.until_done, max_duration_s=args.duration,
-                                overrides=layers, status=args.status)
+                                overrides=layers, status=args.status, spare=args.spare)
     print(summary(outcome.report, Path(args.out)))
     return 0 if outcome.report["status"] == "ok" else 1
 
@@ -222,6 +222,9 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--expect", help="device names of the array, reference first (comma-separated); the stream "
                                      "starts once all are present (or after --discover-s); absent ones are "
                                      "concealed until they join")
+    ap.add_argument("--spare", type=int, default=0, metavar="N",
+                    help="keep N free slots for devices that join after the stream started and are not in --expect "
+                         "(each costs like a device; default 0: such a device is left out, with one sentence)")
     ap.add_argument("--discover-s", type=float, default=5.0, help="longest wait for devices (default 5 s)")
     ap.add_argument("--jitter-s", type=float, default=0.1,
                     help="how long a missing frame is waited for before it is concealed (default 0.1 s)")

@@ -27,6 +27,7 @@ What is dropped when something is slow (backpressure):
 from __future__ import annotations
 
 import collections
+import itertools
 import json
 import logging
 import re
@@ -437,6 +438,8 @@ class NetDevice(DeviceInfo):
     instance: int = 0
     present: bool = False
     facts: dict = field(default_factory=dict)
+    spare: bool = False          # a free slot (``--spare``) that no late device has taken yet
+    joined_late: bool = False    # a device that took a spare slot
 
 
 @dataclass
@@ -482,13 +485,22 @@ class NetSource:
         restart makes every device leave for a moment); otherwise only ``stop()`` ends.
     max_duration_s : float, optional
         End after the reference has delivered this much audio.
+    spare : int
+        Free slots (``spare1``, ...) for devices that join after the stream started without being in ``expect``:
+        the first such device at the slot's rate takes it (renamed, one sentence) and joins like any late
+        device (concealed until then, aligned by the next re-check of the offsets). Each slot costs what a
+        device costs. Without one, such a device is left out, with one sentence.
     """
 
     live = True
 
     def __init__(self, net: NetOptions, *, array: str = "default", expect: Sequence[str] = (),
                  discover_s: float = 5.0, jitter_s: float = 0.1, hold_s: float = 0.5, buffer_s: float = 10.0,
-                 until_done: bool = False, max_duration_s: float | None = None, session=None) -> None:
+                 until_done: bool = False, max_duration_s: float | None = None, session=None,
+                 spare: int = 0) -> None:
+        if int(spare) != spare or spare < 0:
+            raise ConfigError(f"{spare=} must be a whole number of slots >= 0")
+        self.spare = int(spare)
         self.net = net
         self.keys = Keys(array)
         self.expect = [check_name(n) for n in expect]
@@ -633,10 +645,15 @@ class NetSource:
         for name in names:
             dev = NetDevice(name=name, path=f"zenoh:{self.keys.audio(name)}", key=self.keys.audio(name))
             self.devices.append(dev)
+        for k in range(self.spare):
+            name = next(f"spare{j}" for j in itertools.count(k + 1) if f"spare{j}" not in names)
+            self.devices.append(NetDevice(name=name, path="zenoh:(a free slot)", spare=True))
         facts = self._query_facts(names)
         for dev in self.devices:
             f = facts.get(dev.name)
-            if f is None:
+            if dev.spare:
+                log.info("Slot '%s' is free for a device that joins late.", dev.name)
+            elif f is None:
                 # not there yet: its rate comes from the expected devices that are, or its first frame
                 dev.problem(f"Device '{dev.name}' is not present yet; it is concealed until it joins.")
             else:
@@ -697,12 +714,14 @@ class NetSource:
                 self._presence_changed = False
             for name, items in inbox.items():
                 k = index.get(name)
+                if k is None and name not in self._strangers:
+                    k = self._claim(name, items[0][1], index)
                 if k is None:
                     if name not in self._strangers:
                         self._strangers.add(name)
                         log.warning("Device '%s' streams to array '%s' but joined after the stream started; it "
-                                    "is not part of this run (name it in --expect to include it).", name,
-                                    self.keys.array)
+                                    "is not part of this run (name it in --expect, or keep a free slot with --spare, "
+                                    "to include it).", name, self.keys.array)
                     continue
                 lane = self._lanes[k]
                 for arrival, frame in items:
@@ -761,6 +780,30 @@ class NetSource:
                 lane.ended = True
                 yield Frame(k, lane.seq, lane.pos, dev.sample_rate_hz, np.zeros(0, np.float32), FrameFlag.LAST)
         self.network_report = self.report()
+
+    def _claim(self, name: str, frame: wire.WireFrame, index: dict[str, int]) -> int | None:
+        """A free spare slot at the frame's rate for the late device ``name`` (renamed to it), or None."""
+        free = [k for k, d in enumerate(self.active) if d.spare]
+        if not free:
+            return None
+        k = next((k for k in free if abs(self.active[k].sample_rate_hz - frame.sample_rate_hz) < 1e-6), None)
+        if k is None:
+            self._strangers.add(name)
+            log.warning("Device '%s' joined after the stream started at %g Hz; the free slots run at %g Hz, so it is "
+                        "not part of this run.", name, frame.sample_rate_hz, self.active[free[0]].sample_rate_hz)
+            return None
+        dev = self.active[k]
+        slot = dev.name
+        del index[slot]
+        index[name] = k
+        dev.name, dev.key, dev.path = name, self.keys.audio(name), f"zenoh:{self.keys.audio(name)}"
+        dev.spare, dev.joined_late = False, True
+        dev.n_file_channels = int(frame.samples.shape[1])
+        with self._lock:
+            self._presence_changed = True
+        dev.problem(f"Device '{name}' joined after the stream started; it streams in the free slot '{slot}' (its "
+                    "column in toa.csv) from its first frame.")
+        return k
 
     def _place(self, k: int, dev: NetDevice, lane: _Lane, f: wire.WireFrame, progress_s: float) -> Iterator[Frame]:
         c = lane.buffer.counters
@@ -833,6 +876,8 @@ class NetSource:
             if len(lat):     # capture (the sender's clock) to arrival: the network's one-way latency
                 d["latency_ms"] = {"p50": float(np.percentile(lat, 50)), "p99": float(np.percentile(lat, 99)),
                                    "max": float(lat.max())}
+            if dev.joined_late or dev.spare:
+                d["slot"] = "taken by a device that joined late" if dev.joined_late else "free"
             out["devices"][dev.name] = d
         return out
 
@@ -1047,7 +1092,7 @@ def run_aggregate(out_dir: str | Path, net: NetOptions, *, array: str = "default
                   discover_s: float = 5.0, jitter_s: float = 0.1, hold_s: float = 0.5, until_done: bool = False,
                   max_duration_s: float | None = None, config=None,
                   overrides: Sequence[tuple[dict[str, Any], str]] = (), status: bool = True,
-                  handle_signals: bool = True):
+                  handle_signals: bool = True, spare: int = 0):
     """Run the engine on every device of ``array`` until stopped (or, with ``until_done``, until they end).
 
     Writes what ``replay`` writes into ``out_dir`` (report.json gains a ``network`` section), and publishes the
@@ -1062,7 +1107,7 @@ def run_aggregate(out_dir: str | Path, net: NetOptions, *, array: str = "default
     keys = Keys(array)
     session = net.open()
     source = NetSource(net, array=array, expect=expect, discover_s=discover_s, jitter_s=jitter_s, hold_s=hold_s,
-                       until_done=until_done, max_duration_s=max_duration_s, session=session)
+                       until_done=until_done, max_duration_s=max_duration_s, session=session, spare=spare)
     state: dict[str, Any] = {}
 
     class Publish:   # opened on the first hop, when the working rate is known

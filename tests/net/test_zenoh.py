@@ -428,3 +428,36 @@ def test_a_device_that_is_an_array_streams_every_mic(procs, tmp_path):
                                                             "test")])
     assert ref.report["stream"]["channels"] == rep["stream"]["channels"]
     np.testing.assert_array_equal(ref.pipeline.enhanced_signal(), sf.read(out / "enhanced.wav", dtype="float32")[0])
+
+
+def test_a_device_not_expected_that_joins_late_takes_a_spare_slot(procs, tmp_path):
+    """``--spare 1``: phone2, named nowhere, starts 2 s into the stream (2 s into its recording, as a phone that
+    joins a running meeting): it takes the free slot, is concealed until its first frame, and the next re-check
+    of the offsets puts it in the beam; a second stranger finds no slot and is left out in one sentence."""
+    port, out = _port(), tmp_path / "agg"
+    ep = f"tcp/127.0.0.1:{port}"
+    agg = _spawn(procs, "--verbose", "aggregate", "--out", out, "--listen", ep, "--no-scouting", "--array", "t8", "--expect",
+                 "phone0,phone1", "--spare", 1, "--until-done", "--discover-s", 30, "--no-plots",
+                 "--align-window-s", 2.5, "--align-recheck-s", 2.5)
+    for k in range(2):
+        _device(procs, k, "t8", "--connect", ep)
+    _wait_for_line(agg, "Discovery ended", 30.0)   # the stream has started: phone2 comes after it
+    time.sleep(2.0)
+    _device(procs, 2, "t8", "--connect", ep, start_s=2.0, wait=False)
+    time.sleep(1.5)   # phone2 has taken the slot
+    _spawn(procs, "device", "--name", "phone3", "--input", FX / "dev03.flac", "--array", "t8", "--no-scouting",
+           "--start-s", 3.0, "--connect", ep)
+    stdout, stderr = _finish(agg, 60)
+    assert agg.returncode == 0, stderr[-3000:]
+    rep = _report(out)
+    assert rep["status"] == "ok"
+    late = rep["network"]["devices"]["phone2"]
+    assert late["slot"] == "taken by a device that joined late" and late["n_frames"] >= 60, late
+    assert [d["name"] for d in rep["devices"]] == ["phone0", "phone1", "phone2"]
+    assert "spare1" in (out / "toa.csv").read_text().splitlines()[0]      # its column, named when the stream began
+    problems = [p for d in rep["devices"] for p in d["problems"]]
+    assert any("Device 'phone2' joined after the stream started; it streams in the free slot 'spare1'" in p
+               for p in problems), problems
+    assert rep["stream"]["aligned"] == [True, True, True], rep["stream"]
+    assert rep["network"]["strangers"] == ["phone3"]
+    assert "phone3" in stderr and "not part of this run" in stderr
