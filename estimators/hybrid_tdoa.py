@@ -32,8 +32,8 @@ Solver
 The weighted nonlinear least squares of eq. (10), ``W = diag(sigma_tdoa^2 I, sigma_odo^2 I)``, is solved by
 Levenberg-Marquardt (More's scaling, Nielsen's damping update, a trust region on position steps) with a robust
 loss (soft-L1 by default, IRLS, its scale following the robust residual scale so that far from the solution
-it is plain least squares), on a dense or sparse Jacobian (fixed pattern, ``J^T W J`` then Cholesky).
-Budgets are iterations, never wall-clock time. Each start ends with a verdict:
+it is plain least squares), on the fixed sparsity pattern of the Jacobian (``J^T W J`` summed over its stored
+entries, then Cholesky). Budgets are iterations, never wall-clock time. Each start ends with a verdict:
 
 - the minimum is *certified* mic by mic: each mic's own subproblem (its TDOA-S and TDOA-M, events and mic 0
   fixed) is searched globally on a grid and refined; a mic with a clearly better position elsewhere makes the
@@ -69,6 +69,11 @@ residual) and the other mics by a grid search on their own TDOA-M; other baselin
 random around the odometry. A converged baseline start whose mic 0 scores clearly worse than that search's
 best is solved again from there and the lower cost kept (mic 0 has no subproblem of its own to certify).
 
+The small dense work inside every iteration and search (residuals, ``J^T W J``, the LM damping and trial step,
+the per-mic grid scores and their batched refinement, the baseline's search for mic 0) runs in numba kernels:
+compiled on first use after an install (seconds), then loaded from the on-disk cache (the stream's pipeline
+does this before its first block when it calibrates).
+
 Frames
 ------
 - Gauge (paper Sec. II): ``s_0 = 0``, ``(s_1)_y = (s_1)_z = (s_2)_z = 0``, ``tau_0 = 0``. The solver rotates the
@@ -86,6 +91,7 @@ import logging
 from collections.abc import Sequence
 from typing import Literal
 
+import numba
 import numpy as np
 import scipy.linalg
 import scipy.linalg.lapack
@@ -119,6 +125,9 @@ Verdict = Literal["converged", "diverged", "suspect_local_minimum", "max_iterati
 
 _PPM = 1e-6
 _DENSE_LIMIT = 3_000_000  # n_residuals * n_params below which a dense Jacobian is faster
+
+_jit = numba.njit(cache=True, nogil=True, error_model="numpy")  # x / 0 gives inf or NaN, as numpy
+_NO_MASK = np.zeros(0)  # an empty mask keeps every residual (compiled helpers)
 
 
 def _readonly(a, *, shape=None, name="array") -> np.ndarray:
@@ -604,7 +613,9 @@ class _Layout:
                                 o_s + 3 * (st + 1) + comp, o_s + 3 * st + comp, o_e + e_of[jj[rs_e]]])
         l_val = np.concatenate([self.s_dt, np.ones(nm), -np.ones(nm), self.m_t, -self.m_t, np.ones(no),
                                 -np.ones(no), np.ones(len(rs_e))])
-        self.lin = scipy.sparse.csr_matrix((l_val, (l_row, l_col)), shape=(nr, self.n_full))
+        order = np.lexsort((l_col, l_row))  # CSR of L: rows in order, columns sorted (no duplicates)
+        self.lin_indptr = np.concatenate([[0], np.cumsum(np.bincount(l_row, minlength=nr))])
+        self.lin_indices, self.lin_data = l_col[order], l_val[order]
         # Jacobian entries: 6 per geometric term (x_m: +coef*u, s_e: -coef*u) + the linear ones
         kk = np.arange(3)
         e_row = np.concatenate([np.repeat(g_row, 3), np.repeat(g_row, 3), l_row])
@@ -627,7 +638,6 @@ class _Layout:
         u_rows = uniq // self.n_free
         self.indices = (uniq % self.n_free).astype(np.intp)
         self.indptr = np.concatenate([[0], np.cumsum(np.bincount(u_rows, minlength=nr))])
-        self.nz_rows = u_rows.astype(np.intp)  # row of every stored entry (CSR order)
         # which residuals belong to which mic (per-mic diagnostics)
         self.res_mic = np.concatenate([self.s_mic, self.m_mic, np.full(no, -1)])
 
@@ -665,8 +675,10 @@ class _Layout:
 
     # -- residuals and Jacobian ------------------------------------------------------------------------------------
     def residuals(self, p: np.ndarray) -> np.ndarray:
-        df, _, _ = self._geometry(p)
-        return self.w * (self.ca * df[self.ga] + self.cb * df[self.gb] + self.lin @ p - self.y)
+        out = np.empty(self.n_res)
+        _residuals_kernel(p, self.n, self.o_s, self.k, self.w, self.ca, self.ga, self.cb, self.gb,
+                          self.lin_indptr, self.lin_indices, self.lin_data, self.y, out)
+        return out
 
     def jacobian(self, p: np.ndarray):
         _, diff, d = self._geometry(p)
@@ -679,21 +691,69 @@ class _Layout:
         return scipy.sparse.csr_matrix((vals, self.indices, self.indptr), shape=(self.n_res, self.n_free))
 
     def normal_equations(self, p: np.ndarray, w: np.ndarray | None = None, r: np.ndarray | None = None):
-        """``A = J^T diag(w) J`` (dense, n_free x n_free) and ``g = J^T diag(w) r``."""
-        j = self.jacobian(p)
-        if self.dense:
-            if w is not None:
-                sw = np.sqrt(w)
-                j *= sw[:, None]
-            a = j.T @ j
-            g = None if r is None else j.T @ (r if w is None else r * sw)
-        else:
-            if w is not None:
-                sw = np.sqrt(w)
-                j.data *= sw[self.nz_rows]  # row scaling in place: one sparse product instead of two
-            a = (j.T @ j).toarray()
-            g = None if r is None else j.T @ (r if w is None else r * sw)
-        return a, g
+        """``A = J^T diag(w) J`` (dense, n_free x n_free) and ``g = J^T diag(w) r`` (None without ``r``).
+
+        Summed row by row over the stored entries of ``J`` (a TDOA row has about a dozen): the cost grows with
+        the entries, not with ``n_residuals * n_params``."""
+        a = np.empty((self.n_free, self.n_free))
+        g = np.empty(self.n_free)
+        sw = np.ones(self.n_res) if w is None else np.sqrt(w)
+        _normal_equations_kernel(p, self.n, self.o_s, self.k, self.e_uidx, self.e_coef, self.e_const, self.e_inv,
+                                 self.n_uniq, self.indptr, self.indices, sw,
+                                 np.zeros(0) if r is None else r, a, g)
+        return a, (None if r is None else g)
+
+
+@_jit
+def _residuals_kernel(p, n, o_s, k, w, ca, ga, cb, gb, lin_indptr, lin_indices, lin_data, y, out):
+    """``out = w * (ca * d[ga] + cb * d[gb] + L @ p - y)`` (see :class:`_Layout`), ``d`` the mic-event
+    distances (N * K, flat)."""
+    d = np.empty(n * k)
+    for m in range(n):
+        for e in range(k):
+            dx = p[3 * m] - p[o_s + 3 * e]
+            dy = p[3 * m + 1] - p[o_s + 3 * e + 1]
+            dz = p[3 * m + 2] - p[o_s + 3 * e + 2]
+            d[m * k + e] = np.sqrt(dx * dx + dy * dy + dz * dz)
+    for row in range(out.shape[0]):
+        lin = 0.0
+        for t in range(lin_indptr[row], lin_indptr[row + 1]):
+            lin += lin_data[t] * p[lin_indices[t]]
+        out[row] = w[row] * (ca[row] * d[ga[row]] + cb[row] * d[gb[row]] + lin - y[row])
+
+
+@_jit
+def _normal_equations_kernel(p, n, o_s, k, e_uidx, e_coef, e_const, e_inv, n_uniq, indptr, indices, sw, r, a, g):
+    """``a = J^T diag(sw^2) J`` and, if ``r`` is not empty, ``g = J^T diag(sw^2) r``, from the stored entries of
+    ``J`` (CSR: ``indptr``, column ``indices``; entry values as in :meth:`_Layout.jacobian`)."""
+    u = np.empty(n * k * 3)
+    for m in range(n):
+        for e in range(k):
+            dx = p[3 * m] - p[o_s + 3 * e]
+            dy = p[3 * m + 1] - p[o_s + 3 * e + 1]
+            dz = p[3 * m + 2] - p[o_s + 3 * e + 2]
+            q = max(np.sqrt(dx * dx + dy * dy + dz * dz), 1e-12)
+            u[3 * (m * k + e)] = dx / q
+            u[3 * (m * k + e) + 1] = dy / q
+            u[3 * (m * k + e) + 2] = dz / q
+    vals = np.zeros(n_uniq)
+    for t in range(e_inv.shape[0]):
+        vals[e_inv[t]] += e_const[t] + e_coef[t] * u[e_uidx[t]]
+    a[:] = 0.0
+    g[:] = 0.0
+    with_g = r.shape[0] > 0
+    for row in range(indptr.shape[0] - 1):
+        lo, hi = indptr[row], indptr[row + 1]
+        for t in range(lo, hi):
+            vt = vals[t] * sw[row]
+            ct = indices[t]
+            if with_g:
+                g[ct] += vt * (r[row] * sw[row])
+            for q in range(t, hi):
+                a[ct, indices[q]] += vt * (vals[q] * sw[row])
+    for c in range(a.shape[0]):  # columns are sorted within a row: the upper triangle holds the sums
+        for q in range(c):
+            a[c, q] = a[q, c]
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -723,10 +783,36 @@ def _loss(r: np.ndarray, loss: str, f: float):
 def _trimmed_cost(r: np.ndarray, loss: str, f: float, n_trim: int) -> float:
     """``sum rho(r)`` without the ``n_trim`` largest terms: a few gross mis-detections, whose pull is constant
     under a robust loss, must not make a run look stalled at an implausible cost."""
-    rho = _rho(r, loss, f)[0]
-    if 0 < n_trim < len(rho):
-        return float(np.sum(np.partition(rho, len(rho) - n_trim)[:len(rho) - n_trim]))
-    return float(rho.sum())
+    return float(_sum_without_largest(_rho(r, loss, f)[0], n_trim))
+
+
+@_jit
+def _sum_without_largest(v, n_drop):
+    """Sum of ``v`` without its ``n_drop`` largest entries (all of it unless ``0 < n_drop < len(v)``)."""
+    n = v.shape[0]
+    if n_drop <= 0 or n_drop >= n:
+        return v.sum()
+    part = np.partition(v, n - n_drop)
+    total = 0.0
+    for i in range(n - n_drop):
+        total += part[i]
+    return total
+
+
+@_jit
+def _median_abs(r, mask):
+    """``median |r|`` over the entries with ``mask > 0`` (all of them if ``mask`` is empty); NaN if one is NaN
+    (as ``np.median``)."""
+    buf = np.empty(r.shape[0])
+    n = 0
+    for i in range(r.shape[0]):
+        if mask.shape[0] == 0 or mask[i] > 0:
+            v = abs(r[i])
+            if np.isnan(v):
+                return np.nan
+            buf[n] = v
+            n += 1
+    return np.median(buf[:n])
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -740,12 +826,12 @@ class _Run:
     n_iterations: int
 
 
-def _adaptive_scale(r: np.ndarray, f_scale: float, loss: str) -> float:
-    """Robust-loss scale ``f_scale * max(1, 1.4826 median|r|)``: huge far from the solution (plain least
-    squares, wide basin), ``f_scale`` sigmas near it (gross mis-detections down-weighted)."""
+def _adaptive_scale(r: np.ndarray, f_scale: float, loss: str, mask: np.ndarray | None = None) -> float:
+    """Robust-loss scale ``f_scale * max(1, 1.4826 median|r|)`` (over ``mask > 0``): huge far from the solution
+    (plain least squares, wide basin), ``f_scale`` sigmas near it (gross mis-detections down-weighted)."""
     if loss == "linear":
         return f_scale
-    return f_scale * max(1.0, 1.4826 * float(np.median(np.abs(r))))
+    return f_scale * max(1.0, 1.4826 * float(_median_abs(r, _NO_MASK if mask is None else mask)))
 
 
 def _levenberg_marquardt(lay: _Layout, p0: np.ndarray, *, loss: str, f_scale: float, max_iterations: int,
@@ -768,7 +854,7 @@ def _levenberg_marquardt(lay: _Layout, p0: np.ndarray, *, loss: str, f_scale: fl
         return w if mask is None else w * mask
 
     r = resid(p)
-    f = _adaptive_scale(r if mask is None else r[mask > 0], f_scale, loss)
+    f = _adaptive_scale(r, f_scale, loss, mask)
     cost, w = _loss(r, loss, f)
     if not np.isfinite(cost):
         return _Run(p, "diverged", cost, 0)
@@ -777,47 +863,37 @@ def _levenberg_marquardt(lay: _Layout, p0: np.ndarray, *, loss: str, f_scale: fl
     d = np.zeros(lay.n_free)
     pos_cols = np.concatenate([lay.col_of[:3 * lay.n], lay.col_of[lay.o_s:lay.o_e]])
     pos_cols = pos_cols[pos_cols >= 0]
+    free_idx = np.nonzero(free)[0]
     it = 0
     n_trim = (lay.n_s + lay.n_m) // 20
     history = []
     while it < max_iterations:
         it += 1
-        if np.isfinite(stall_cost):
+        if np.isfinite(stall_cost) and it > 10:  # from iteration 21 on, compared with 10 iterations back
             history.append(_trimmed_cost(r, loss, f, n_trim))
-            if it > 20 and history[-1] > stall_cost and history[-11] - history[-1] < 0.05 * history[-1]:
+            if len(history) > 10 and history[-1] > stall_cost and history[-11] - history[-1] < 0.05 * history[-1]:
                 return _Run(p, "max_iterations", cost, it)
-        # More's scaling: the running maximum of diag(A) keeps down-weighted directions damped
-        da = a.diagonal()
-        d = np.maximum(d, np.maximum(da, 1e-12 * max(da.max(), 1e-300)))
-        sd = np.sqrt(d)
-        if np.max(np.abs(g) / sd) <= 1e-10 * (1.0 + np.sqrt(2.0 * cost)):
+        m, scaled_gradient = _more_damping(a, g, d, lam)
+        if scaled_gradient <= 1e-10 * (1.0 + np.sqrt(2.0 * cost)):
             return _Run(p, "converged", cost, it)
-        m = a.copy()
-        m.flat[::len(d) + 1] += lam * d
         _, h, info = scipy.linalg.lapack.dposv(m, g)  # Cholesky solve of the damped normal equations
         if info != 0:
             lam *= nu
             nu *= 2.0
             continue
-        h = -h
-        big = np.max(np.abs(h[pos_cols])) if len(pos_cols) else 0.0
-        if big > max_step_m:  # trust region on positions: no jump beyond the scene size in one step
-            h *= max_step_m / big
-        step_scaled = np.max(np.abs(h) * sd)
-        p_new = p.copy()
-        p_new[free] += h
+        p_new, step_scaled, pred, far_m = _trial_step(h, a, g, d, p, free_idx, pos_cols, max_step_m, 3 * lay.n,
+                                                      lay.o_s, lay.o_e)
         r_new = resid(p_new)
         cost_new, w_new = _loss(r_new, loss, f)
-        pred = -(g @ h + 0.5 * h @ (a @ h))
         rho = (cost - cost_new) / pred if pred > 0 else -1.0
         if np.isfinite(cost_new) and rho > 0:
             decrease = cost - cost_new
             p, r, cost, w = p_new, r_new, cost_new, w_new
-            if np.max(np.abs(p[:3 * lay.n])) > limit_m or np.max(np.abs(p[lay.o_s:lay.o_e])) > limit_m:
+            if far_m > limit_m:
                 return _Run(p, "diverged", cost, it)
             lam *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
             nu = 2.0
-            f_new = _adaptive_scale(r if mask is None else r[mask > 0], f_scale, loss)
+            f_new = _adaptive_scale(r, f_scale, loss, mask)
             if f_new != f:
                 f = f_new
                 cost, w = _loss(r, loss, f)
@@ -832,6 +908,65 @@ def _levenberg_marquardt(lay: _Layout, p0: np.ndarray, *, loss: str, f_scale: fl
             if lam > 1e16:
                 return _Run(p, "converged", cost, it)  # no descent direction left: at a minimum
     return _Run(p, "max_iterations", cost, it)
+
+
+@_jit
+def _more_damping(a, g, d, lam):
+    """More's scaling: ``d`` (updated in place) is the running maximum of ``diag(A)`` (floored at 1e-12 of its
+    largest entry), which keeps down-weighted directions damped. Returns ``A + lam diag(d)`` and the scaled
+    gradient ``max |g_i| / sqrt(d_i)``."""
+    n = g.shape[0]
+    top = 1e-300
+    for i in range(n):
+        top = max(top, a[i, i])
+    floor = 1e-12 * top
+    m = a.copy()
+    scaled = 0.0
+    for i in range(n):
+        d[i] = max(d[i], max(a[i, i], floor))
+        m[i, i] += lam * d[i]
+        scaled = max(scaled, abs(g[i]) / np.sqrt(d[i]))
+    return m, scaled
+
+
+@_jit
+def _trial_step(h, a, g, d, p, free_idx, pos_cols, max_step_m, n_mic_coords, o_s, o_e):
+    """The LM step ``-h`` (``h`` solves the damped normal equations), scaled down so that no position moves
+    more than ``max_step_m`` (trust region: no jump beyond the scene size in one step). Returns the new full
+    parameter vector, ``max |step_i| sqrt(d_i)``, the predicted decrease ``-(g.step + step.A step / 2)`` and the
+    largest position coordinate of the new vector (``p[:n_mic_coords]`` and ``p[o_s:o_e]``), metres."""
+    n = h.shape[0]
+    step = np.empty(n)
+    for i in range(n):
+        step[i] = -h[i]
+    big = 0.0
+    for c in pos_cols:
+        big = max(big, abs(step[c]))
+    if big > max_step_m:
+        shrink = max_step_m / big
+        for i in range(n):
+            step[i] *= shrink
+    scaled = 0.0
+    for i in range(n):
+        scaled = max(scaled, abs(step[i]) * np.sqrt(d[i]))
+    p_new = p.copy()
+    for i in range(n):
+        p_new[free_idx[i]] += step[i]
+    ah = np.zeros(n)
+    for k in range(n):  # A step, row by row of the symmetric A (contiguous)
+        for i in range(n):
+            ah[i] += a[k, i] * step[k]
+    gh = 0.0
+    hah = 0.0
+    for i in range(n):
+        gh += g[i] * step[i]
+        hah += step[i] * ah[i]
+    far = 0.0
+    for i in range(n_mic_coords):
+        far = max(far, abs(p_new[i]))
+    for i in range(o_s, o_e):
+        far = max(far, abs(p_new[i]))
+    return p_new, scaled, -(gh + 0.5 * hah), far
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -857,8 +992,12 @@ def _grid(events: np.ndarray, n_grid: int) -> np.ndarray:
     margin = max(1.0, 0.5 * float(np.max(hi - lo)))
     lo, hi = lo - margin, hi + margin
     h = (np.prod(hi - lo) / n_grid) ** (1 / 3)
-    axes = [np.arange(lo[d] + h / 2, hi[d], h) for d in range(3)]
-    return np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    ax, ay, az = (np.arange(lo[d] + h / 2, hi[d], h) for d in range(3))
+    out = np.empty((len(ax), len(ay), len(az), 3))  # x slowest, z fastest
+    out[..., 0] = ax[:, None, None]
+    out[..., 1] = ay[:, None]
+    out[..., 2] = az
+    return out.reshape(-1, 3)
 
 
 class _MicBatch:
@@ -895,17 +1034,16 @@ class _MicBatch:
         self.a = np.zeros((b, r_max, 2))
         self.n_rows = np.zeros(b, dtype=np.intp)
         self.has_m = np.zeros(b, dtype=bool)
+        # eq. (6) terms of mic 0, known with the events: -|x_0 - s_j| / c - delta_0 t_j
+        known_m = -np.sqrt(np.sum((x[0] - s[lay.m_ev]) ** 2, 1)) / c - delta[0] * lay.m_t
         for q, (ss, mm) in enumerate(per):
             na, nb = len(ss), len(mm)
-            sl = slice(0, na + nb)
-            self.ev_a[q, sl] = np.concatenate([lay.s_ev[ss] + 1, lay.m_ev[mm]])
-            self.ev_b[q, sl] = np.concatenate([lay.s_ev[ss], lay.m_ev[mm]])
+            self.ev_a[q, :na], self.ev_a[q, na:na + nb] = lay.s_ev[ss] + 1, lay.m_ev[mm]
+            self.ev_b[q, :na], self.ev_b[q, na:na + nb] = lay.s_ev[ss], lay.m_ev[mm]
             self.has_b[q, :na] = 1.0
-            w = np.concatenate([np.full(na, lay.s_w), np.full(nb, lay.m_w)])
-            self.w[q, sl] = w
-            known = np.concatenate([np.zeros(na), -np.sqrt(np.sum((x[0] - s[lay.m_ev[mm]]) ** 2, 1)) / c
-                                    - delta[0] * lay.m_t[mm]])
-            self.b0[q, sl] = w * (known - np.concatenate([s_y[ss], lay.m_y[mm]]))
+            self.w[q, :na], self.w[q, na:na + nb] = lay.s_w, lay.m_w
+            self.b0[q, :na] = lay.s_w * (0.0 - s_y[ss])
+            self.b0[q, na:na + nb] = lay.m_w * (known_m[mm] - lay.m_y[mm])
             self.a[q, :na, 0] = lay.s_w * lay.s_dt[ss]
             self.a[q, na:na + nb, 0] = lay.m_w * lay.m_t[mm]
             self.a[q, na:na + nb, 1] = lay.m_w
@@ -921,8 +1059,8 @@ class _MicBatch:
     def grid_search(self, dist_t: np.ndarray, cap: float, n_best: int, which: np.ndarray | None = None):
         """The ``n_best`` grid points per mic with the lowest truncated score ``sum min(r^2, cap^2)``, ``theta``
         eliminated by least squares (residual projected out of ``A``'s range). ``dist_t``: (K, G).
-        Returns grid indices (b, n_best) and theta (b, n_best, 2) (rows outside ``which`` are 0). One mic at
-        a time keeps the temporaries small (cache-resident)."""
+        Returns grid indices (b, n_best) and theta (b, n_best, 2) (rows outside ``which`` are 0). One compiled
+        call per mic (:func:`_grid_scores`)."""
         b = len(self.mics)
         n_best = min(n_best, dist_t.shape[1])
         top = np.zeros((b, n_best), dtype=np.intp)
@@ -930,29 +1068,9 @@ class _MicBatch:
         for q in (range(b) if which is None else which):
             nr = self.n_rows[q]
             a = self.a[q, :nr]
-            wa = (self.w[q, :nr] / self.c)[:, None]
-            et = wa * dist_t[self.ev_a[q, :nr]]
-            hb = self.has_b[q, :nr] > 0
-            et[hb] -= wa[hb] * dist_t[self.ev_b[q, :nr][hb]]
-            et += self.b0[q, :nr, None]  # (R, G)
-            ata_inv = np.linalg.inv(a.T @ a + np.diag(self.ridge[q]))
-            thq = -(ata_inv @ a.T @ et)  # (2, G) least squares
-            res = et + a @ thq
-            # one refit without the rows far above the typical residual of the grid point: a grossly
-            # mis-detected chirp must not drag theta (3x the mean |r|: a median costs a partition per point)
-            ares = np.abs(res)
-            inl = (ares < np.maximum(cap, 3.0 * ares.mean(axis=0))).astype(float)
-            s00 = (a[:, 0] ** 2) @ inl + self.ridge[q, 0]
-            s01 = (a[:, 0] * a[:, 1]) @ inl
-            s11 = (a[:, 1] ** 2) @ inl + self.ridge[q, 1]
-            ie = inl * et
-            r0, r1 = -(a[:, 0] @ ie), -(a[:, 1] @ ie)
-            det = s00 * s11 - s01 * s01
-            thq = np.stack([(s11 * r0 - s01 * r1) / det, (s00 * r1 - s01 * r0) / det])
-            res = et + a @ thq
-            np.square(res, out=res)
-            np.minimum(res, cap * cap, out=res)
-            score = res.sum(0)
+            proj = np.linalg.inv(a.T @ a + np.diag(self.ridge[q])) @ a.T  # (2, R): theta by least squares
+            score, thq = _grid_scores(dist_t, self.ev_a[q, :nr], self.ev_b[q, :nr], self.has_b[q, :nr],
+                                      self.w[q, :nr] / self.c, self.b0[q, :nr], a, proj, self.ridge[q], cap)
             t = np.argpartition(score, n_best - 1)[:n_best]
             top[q] = t
             th[q] = thq[:, t].T
@@ -976,40 +1094,188 @@ class _MicBatch:
         """Batched damped Gauss-Newton with Cauchy IRLS on ``(x, theta)`` for candidates of mics ``rep``;
         position steps are capped at ``max_step_m`` and candidates leaving ``box`` (lo, hi) get cost inf
         (with few rows the far field can fit as well as the truth)."""
-        xs, th = xs.copy(), th.copy()
-        cost = self.costs(xs, th, f, rep)
-        lam = np.full(len(xs), 1e-3)
-        ridge5 = np.concatenate([np.zeros((len(xs), 3)), self.ridge[rep]], 1)
-        s_a, s_b = self.s[self.ev_a[rep]], self.s[self.ev_b[rep]]
-        w, hb, a = self.w[rep], self.has_b[rep], self.a[rep]
-        eye = np.eye(5)
-        for _ in range(n_iter):
-            r = self.residuals(xs, th, rep)
-            wt = 1.0 / (1.0 + (r / f) ** 2)  # Cauchy IRLS weight
-            ua = xs[:, None, :] - s_a
-            ub = xs[:, None, :] - s_b
-            ua /= np.maximum(np.sqrt(np.sum(ua * ua, -1)), 1e-12)[..., None]
-            ub /= np.maximum(np.sqrt(np.sum(ub * ub, -1)), 1e-12)[..., None]
-            j = np.concatenate([w[..., None] * (ua - hb[..., None] * ub) / self.c, a], -1)  # (m, R, 5)
-            jw = j * wt[..., None]
-            aa = np.swapaxes(jw, 1, 2) @ j
-            g = np.einsum("bri,br->bi", jw, r)
-            dd = np.einsum("bii->bi", aa)
-            m = aa + ((lam[:, None] * dd) + ridge5)[..., None] * eye
-            try:
-                h = -np.linalg.solve(m, g[..., None])[..., 0]
-            except np.linalg.LinAlgError:
-                break
-            big = np.max(np.abs(h[:, :3]), axis=1, keepdims=True)
-            h = h * np.minimum(1.0, max_step_m / np.maximum(big, 1e-300))
-            xn, tn = xs + h[:, :3], th + h[:, 3:]
-            cn = self.costs(xn, tn, f, rep)
-            ok = cn < cost
-            xs[ok], th[ok], cost[ok] = xn[ok], tn[ok], cn[ok]
-            lam = np.where(ok, np.maximum(lam / 3, 1e-9), lam * 4)
-        outside = np.any((xs < box[0]) | (xs > box[1]), axis=1)
-        cost[outside] = np.inf
+        xs, th = np.array(xs, dtype=np.float64), np.array(th, dtype=np.float64)
+        cost = _refine_kernel(xs, th, float(f), self.s, self.ev_a, self.ev_b, self.has_b, self.w, self.b0, self.a,
+                              self.ridge, np.ascontiguousarray(rep, dtype=np.intp), self.n_rows, float(self.c),
+                              np.asarray(box[0], dtype=np.float64), np.asarray(box[1], dtype=np.float64),
+                              float(max_step_m), int(n_iter))
         return xs, th, cost
+
+
+@_jit
+def _mic_residuals(x, th, s, ev_a, ev_b, has_b, w, b0, a, n_rows, c, r):
+    """Rows ``0..n_rows-1`` of one mic's subproblem into ``r`` (see :meth:`_MicBatch.residuals`)."""
+    for t in range(n_rows):
+        sa, sb = s[ev_a[t]], s[ev_b[t]]
+        da = np.sqrt((x[0] - sa[0]) ** 2 + (x[1] - sa[1]) ** 2 + (x[2] - sa[2]) ** 2)
+        db = np.sqrt((x[0] - sb[0]) ** 2 + (x[1] - sb[1]) ** 2 + (x[2] - sb[2]) ** 2)
+        r[t] = w[t] * (da - has_b[t] * db) / c + b0[t] + (a[t, 0] * th[0] + a[t, 1] * th[1])
+
+
+@_jit
+def _cauchy_cost(r, n_rows, f):
+    """``sum f^2/2 log(1 + (r/f)^2)`` over the first ``n_rows`` entries of ``r``."""
+    total = 0.0
+    for t in range(n_rows):
+        z = r[t] / f
+        total += 0.5 * f * f * np.log1p(z * z)
+    return total
+
+
+@_jit
+def _solve_pivoted(m, g, h):
+    """``h = m^-1 g`` by Gaussian elimination with partial pivoting (``m``, ``g`` overwritten); False if
+    ``m`` is singular."""
+    n = g.shape[0]
+    for col in range(n):
+        piv = col
+        for i in range(col + 1, n):
+            if abs(m[i, col]) > abs(m[piv, col]):
+                piv = i
+        if m[piv, col] == 0.0:
+            return False
+        if piv != col:
+            for k in range(n):
+                m[col, k], m[piv, k] = m[piv, k], m[col, k]
+            g[col], g[piv] = g[piv], g[col]
+        for i in range(col + 1, n):
+            fac = m[i, col] / m[col, col]
+            for k in range(col, n):
+                m[i, k] -= fac * m[col, k]
+            g[i] -= fac * g[col]
+    for i in range(n - 1, -1, -1):
+        acc = g[i]
+        for k in range(i + 1, n):
+            acc -= m[i, k] * h[k]
+        h[i] = acc / m[i, i]
+    return True
+
+
+@_jit
+def _refine_kernel(xs, th, f, s, ev_a, ev_b, has_b, w, b0, a, ridge, rep, n_rows, c, lo, hi, max_step_m, n_iter):
+    """:meth:`_MicBatch.refine` for candidates ``(xs[q], th[q])`` of batch mics ``rep[q]`` (updated in place);
+    returns their costs. All candidates step together: a singular system stops every one of them."""
+    n_cand, r_max = xs.shape[0], w.shape[1]
+    r = np.empty(r_max)
+    cost = np.empty(n_cand)
+    for q in range(n_cand):
+        b = rep[q]
+        _mic_residuals(xs[q], th[q], s, ev_a[b], ev_b[b], has_b[b], w[b], b0[b], a[b], n_rows[b], c, r)
+        cost[q] = _cauchy_cost(r, n_rows[b], f)
+    lam = np.full(n_cand, 1e-3)
+    steps = np.empty((n_cand, 5))
+    jt = np.empty(5)
+    m = np.empty((5, 5))
+    g = np.empty(5)
+    xn = np.empty(3)
+    tn = np.empty(2)
+    for _ in range(n_iter):
+        for q in range(n_cand):  # the damped, Cauchy-weighted normal equations of every candidate
+            b = rep[q]
+            nr = n_rows[b]
+            x = xs[q]
+            _mic_residuals(x, th[q], s, ev_a[b], ev_b[b], has_b[b], w[b], b0[b], a[b], nr, c, r)
+            m[:] = 0.0
+            g[:] = 0.0
+            for t in range(nr):
+                sa, sb = s[ev_a[b, t]], s[ev_b[b, t]]
+                na = max(np.sqrt((x[0] - sa[0]) ** 2 + (x[1] - sa[1]) ** 2 + (x[2] - sa[2]) ** 2), 1e-12)
+                nb = max(np.sqrt((x[0] - sb[0]) ** 2 + (x[1] - sb[1]) ** 2 + (x[2] - sb[2]) ** 2), 1e-12)
+                for k in range(3):
+                    jt[k] = w[b, t] * ((x[k] - sa[k]) / na - has_b[b, t] * ((x[k] - sb[k]) / nb)) / c
+                jt[3], jt[4] = a[b, t, 0], a[b, t, 1]
+                wt = 1.0 / (1.0 + (r[t] / f) ** 2)  # Cauchy IRLS weight
+                for i in range(5):
+                    g[i] += jt[i] * wt * r[t]
+                    for k in range(5):
+                        m[i, k] += jt[i] * wt * jt[k]
+            for i in range(5):
+                m[i, i] += lam[q] * m[i, i] + (ridge[b, i - 3] if i >= 3 else 0.0)
+            if not _solve_pivoted(m, g, steps[q]):
+                return _outside_inf(xs, cost, lo, hi)
+        for q in range(n_cand):
+            b = rep[q]
+            big = max(abs(steps[q, 0]), abs(steps[q, 1]), abs(steps[q, 2]))
+            shrink = min(1.0, max_step_m / max(big, 1e-300))
+            for k in range(3):
+                xn[k] = xs[q, k] - steps[q, k] * shrink
+            for k in range(2):
+                tn[k] = th[q, k] - steps[q, 3 + k] * shrink
+            _mic_residuals(xn, tn, s, ev_a[b], ev_b[b], has_b[b], w[b], b0[b], a[b], n_rows[b], c, r)
+            cn = _cauchy_cost(r, n_rows[b], f)
+            if cn < cost[q]:
+                xs[q, :] = xn
+                th[q, :] = tn
+                cost[q] = cn
+                lam[q] = max(lam[q] / 3, 1e-9)
+            else:
+                lam[q] *= 4
+    return _outside_inf(xs, cost, lo, hi)
+
+
+@_jit
+def _outside_inf(xs, cost, lo, hi):
+    """``cost`` with inf where a candidate left the box ``[lo, hi]``."""
+    for q in range(xs.shape[0]):
+        for k in range(3):
+            if xs[q, k] < lo[k] or xs[q, k] > hi[k]:
+                cost[q] = np.inf
+    return cost
+
+
+@_jit
+def _grid_scores(dist_t, ev_a, ev_b, has_b, wc, b0, a, proj, ridge, cap):
+    """:meth:`_MicBatch.grid_search` of one mic: at every grid point ``g`` (column of ``dist_t``, (K, G)) the
+    whitened residuals ``e = wc (|g - s_a| - has_b |g - s_b|) + b0 + a theta`` (R rows), ``theta`` fitted by
+    least squares (``theta = -proj e_0``), then refitted without the rows above ``max(cap, 3 mean |e|)`` (a
+    grossly mis-detected chirp must not drag theta; a median would cost a partition per point). Returns the
+    truncated score ``sum min(e^2, cap^2)`` (G,) and theta (2, G)."""
+    n_rows, n_grid = ev_a.shape[0], dist_t.shape[1]
+    et = np.empty((n_rows, n_grid))
+    for r in range(n_rows):
+        for g in range(n_grid):
+            v = wc[r] * dist_t[ev_a[r], g]
+            if has_b[r] > 0:
+                v -= wc[r] * dist_t[ev_b[r], g]
+            et[r, g] = v + b0[r]
+    th0 = np.zeros(n_grid)
+    th1 = np.zeros(n_grid)
+    for r in range(n_rows):
+        for g in range(n_grid):
+            th0[g] -= proj[0, r] * et[r, g]
+            th1[g] -= proj[1, r] * et[r, g]
+    limit = np.zeros(n_grid)
+    for r in range(n_rows):
+        for g in range(n_grid):
+            limit[g] += abs(et[r, g] + (a[r, 0] * th0[g] + a[r, 1] * th1[g]))
+    for g in range(n_grid):
+        limit[g] = max(cap, 3.0 * (limit[g] / n_rows))
+    s00 = np.full(n_grid, ridge[0])
+    s01 = np.zeros(n_grid)
+    s11 = np.full(n_grid, ridge[1])
+    r0 = np.zeros(n_grid)
+    r1 = np.zeros(n_grid)
+    for r in range(n_rows):
+        for g in range(n_grid):
+            e = et[r, g]
+            if abs(e + (a[r, 0] * th0[g] + a[r, 1] * th1[g])) < limit[g]:
+                s00[g] += a[r, 0] * a[r, 0]
+                s01[g] += a[r, 0] * a[r, 1]
+                s11[g] += a[r, 1] * a[r, 1]
+                r0[g] -= a[r, 0] * e
+                r1[g] -= a[r, 1] * e
+    theta = np.empty((2, n_grid))
+    for g in range(n_grid):
+        det = s00[g] * s11[g] - s01[g] * s01[g]
+        theta[0, g] = (s11[g] * r0[g] - s01[g] * r1[g]) / det
+        theta[1, g] = (s00[g] * r1[g] - s01[g] * r0[g]) / det
+    score = np.zeros(n_grid)
+    cap2 = cap * cap
+    for r in range(n_rows):
+        for g in range(n_grid):
+            e = et[r, g] + (a[r, 0] * theta[0, g] + a[r, 1] * theta[1, g])
+            score[g] += min(e * e, cap2)
+    return score, theta
 
 
 def _best_mic_positions(lay: _Layout, p: np.ndarray, mics, *, use_m: bool, grid: np.ndarray, f: float = 3.0,
@@ -1028,7 +1294,7 @@ def _best_mic_positions(lay: _Layout, p: np.ndarray, mics, *, use_m: bool, grid:
     if len(which) == 0:
         return batch, xb, thb, cb, now
     s = lay.unpack(p)[3]
-    dist_t = np.sqrt(np.sum((s[:, None, :] - grid[None, :, :]) ** 2, -1))  # (K, G), shared by all mics
+    dist_t = _distances(s, grid)  # (K, G), shared by all mics
     top, th = batch.grid_search(dist_t, cap, n_best, which)
     cand = grid[top]  # (b, nb, 3)
     use = np.zeros(top.shape, dtype=bool)
@@ -1085,6 +1351,31 @@ def _place_segment(lay: _Layout, events: np.ndarray, seg: np.ndarray, g: int, pl
     return out
 
 
+@_jit
+def _distances(a, b):
+    """ndarray, shape (len(a), len(b)): ``|a_i - b_j|`` of two point sets, shapes (n, 3) and (m, 3)."""
+    out = np.empty((a.shape[0], b.shape[0]))
+    for i in range(a.shape[0]):
+        for j in range(b.shape[0]):
+            dx = a[i, 0] - b[j, 0]
+            dy = a[i, 1] - b[j, 1]
+            dz = a[i, 2] - b[j, 2]
+            out[i, j] = np.sqrt(dx * dx + dy * dy + dz * dz)
+    return out
+
+
+@_jit
+def _min_plus(cross, a):
+    """``min_g cross[g, h] + a[g]`` for every ``h`` (float32 in and out, as ``np.min(cross + a[:, None], 0)``
+    without the (G, H) temporary)."""
+    best = cross[0] + a[0]
+    for g in range(1, cross.shape[0]):
+        ag = a[g]
+        for h in range(cross.shape[1]):
+            best[h] = min(best[h], cross[g, h] + ag)
+    return best
+
+
 def _reference_candidates(lay: _Layout, events: np.ndarray, grid: np.ndarray, ref_grid: np.ndarray, n_best: int,
                           cap: float = 100.0, min_separation_m: float = 0.0) -> np.ndarray:
     """Baseline: points of ``ref_grid`` for mic 0 ranked by how well every other mic's TDOA-M can then be
@@ -1099,8 +1390,8 @@ def _reference_candidates(lay: _Layout, events: np.ndarray, grid: np.ndarray, re
     ``cap`` sigmas squared per row (a grossly mis-detected chirp spoils one mic, not the ranking).
     """
     scale = lay.m_w / lay.c
-    dist_g = np.sqrt(np.sum((events[:, None, :] - grid[None, :, :]) ** 2, -1)) * scale  # (K, G)
-    dist_h = np.sqrt(np.sum((events[:, None, :] - ref_grid[None, :, :]) ** 2, -1)) * scale  # (K, H)
+    dist_g = _distances(events, grid) * scale  # (K, G)
+    dist_h = _distances(events, ref_grid) * scale  # (K, H)
     total = np.zeros(len(ref_grid))
     cache: dict[bytes, tuple] = {}
     for i in range(1, lay.n):
@@ -1114,14 +1405,15 @@ def _reference_candidates(lay: _Layout, events: np.ndarray, grid: np.ndarray, re
             dg = dist_g[jm] - q @ (q.T @ dist_g[jm])  # P D, (R, G)
             dh = dist_h[jm] - q @ (q.T @ dist_h[jm])
             # float32 for the (G, H) part: scores differ by >= 1 (sigma^2) where they matter, out of <~1e5
-            cache[key] = (q, dg, dh, (-2.0 * (dg.T @ dh)).astype(np.float32), np.sum(dg * dg, 0),
-                          np.sum(dh * dh, 0))
+            cross = dg.T @ dh
+            cross *= -2.0
+            cache[key] = (q, dg, dh, cross.astype(np.float32), np.sum(dg * dg, 0), np.sum(dh * dh, 0))
         q, dg, dh, cross, ng, nh = cache[key]
         y = lay.m_w * lay.m_y[sel]
         u = y - q @ (q.T @ y)
         # S(g, h) = |D_g|^2 + |D_h|^2 + |u|^2 - 2 D_g.D_h - 2 D_g.u + 2 D_h.u, minimised over g
         a = (ng - 2.0 * (u @ dg)).astype(np.float32)
-        best = np.min(cross + a[:, None], axis=0) + nh + u @ u + 2.0 * (u @ dh)
+        best = _min_plus(cross, a) + nh + u @ u + 2.0 * (u @ dh)
         total += np.minimum(np.maximum(best, 0.0), cap * len(sel))
     order = np.argsort(total)
     if min_separation_m <= 0.0:
@@ -1308,10 +1600,10 @@ def _gross_error_tests(lay: _Layout, p: np.ndarray, mask: np.ndarray, loss: str,
     rt = r[:n_t][kept[:n_t]]
     if len(rt) == 0:
         return None
-    scale = max(1.0, 1.4826 * float(np.median(np.abs(rt))))
+    scale = max(1.0, 1.4826 * float(_median_abs(rt, _NO_MASK)))
     ro = r[n_t:][kept[n_t:]]
-    scale_o = max(1.0, 1.4826 * float(np.median(np.abs(ro)))) if len(ro) else 1.0
-    f = _adaptive_scale(r[kept], f_scale, loss)
+    scale_o = max(1.0, 1.4826 * float(_median_abs(ro, _NO_MASK))) if len(ro) else 1.0
+    f = _adaptive_scale(r, f_scale, loss, mask)
     w = _rho(r, loss, f)[1] * mask
     j = lay.jacobian(p)
     sw = np.sqrt(w)
@@ -1478,14 +1770,14 @@ def _diagnostics(lay: _Layout, p: np.ndarray, mask: np.ndarray | None = None) ->
     keep = np.ones(len(r), dtype=bool) if mask is None else mask > 0
     rk = r[keep]
     dof = max(int(keep.sum()) - lay.n_free, 1)
-    scale = 1.4826 * float(np.median(np.abs(rk))) if len(rk) else 0.0
+    scale = 1.4826 * float(_median_abs(rk, _NO_MASK)) if len(rk) else 0.0
     inl = np.abs(rk) < 5.0 * max(1.0, scale)
     # per-mic robust scale: a mic stuck in a wrong basin fits systematically badly
     worst = 0.0
     for i in range(lay.n):
-        ri = r[(lay.res_mic == i) & keep]
-        if len(ri) >= 4:
-            worst = max(worst, 1.4826 * float(np.median(np.abs(ri))))
+        own = (lay.res_mic == i) & keep
+        if np.count_nonzero(own) >= 4:
+            worst = max(worst, 1.4826 * float(_median_abs(r, own)))
     ro = r[lay.n_s + lay.n_m:][keep[lay.n_s + lay.n_m:]]
     return {"chi2_per_dof": float(rk @ rk) / dof, "residual_scale": scale,
             "inlier_fraction": float(np.mean(inl)) if len(rk) else 1.0, "worst_mic_scale": worst,
@@ -1646,7 +1938,7 @@ def solve(problem: HybridTdoaProblem, *, method: Method = "hybrid", init: Scene 
         cost_cmp = _loss(r_all, loss, f_scale)[0] if finite else np.inf
         next_p0 = None
         if run.status == "converged" and finite:
-            f_now = _adaptive_scale(r_all if mask is None else r_all[mask > 0], f_scale, loss)
+            f_now = _adaptive_scale(r_all, f_scale, loss, mask)
             events = lay_k.unpack(run.p)[3]
             moved, q = _certify(lay_k, run.p, method, _grid(events, n_grid), f_now)
             if moved:

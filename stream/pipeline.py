@@ -271,6 +271,16 @@ class Pipeline:
             n_pairs = m * (m - 1) // 2
             for _ in range(3):   # initialise, then update
                 estimator.update(np.zeros(n_pairs), np.ones(n_pairs))
+        if self.calibrator is not None:   # the calibration solver's kernels: compiled by a first solve in the
+            # worker instead, they would stall this thread (the GIL) for up to ~0.2 s at a time over seconds.
+            # A noisy cube of 8 events, from the built-in start (grid searches) and from a collapsed one (> 10
+            # iterations): every kernel of the method runs
+            corners = 3.0 * np.array(np.meshgrid([0, 1], [0, 1], [0, 1], indexing="ij")).reshape(3, -1).T
+            truth = estimators.Scene(0.5 + 0.6 * corners[[1, 2, 4, 7, 3]], corners)
+            problem = estimators.simulate_problem(truth, np.full(7, 2.0), sigma_tdoa_s=1e-4, sigma_odo_m=0.01,
+                                                  rng=0)
+            for start in (None, estimators.Scene(np.full((5, 3), 1.5), 1.5 + 0.1 * corners)):
+                estimators.solve_hybrid_tdoa(problem, method=self.calibrator.method, init=start, rng=0)
         return time.perf_counter() - t0
 
     @property

@@ -264,6 +264,34 @@ def test_sparse_jacobian_equals_dense(monkeypatch):
     np.testing.assert_allclose(dense, num, atol=1e-4 * np.max(np.abs(dense)))
 
 
+@pytest.mark.parametrize("method", ["hybrid", "baseline"])
+def test_normal_equations_are_the_jacobian_products(method):
+    """The compiled ``J^T W J`` and ``J^T W r`` (summed over the stored entries of each row) equal the products
+    of the explicit Jacobian, with a free interval error too; ``residuals`` is eq. (5)/(6)/(9) row by row."""
+    rng = np.random.default_rng(11)
+    truth = make_truth(rng)
+    problem = make_problem(truth, rng)
+    lay = ht._Layout(problem, method, free_intervals=[3] if method == "hybrid" else ())
+    p = lay.pack(truth.mic_positions_m + rng.normal(0, 0.3, (6, 3)), truth.offsets_s, truth.drifts_ppm * 1e-6,
+                 truth.event_positions_m, np.full(lay.n_e, 2e-4))
+    w, r = rng.uniform(0.0, 1.0, lay.n_res), rng.normal(0.0, 3.0, lay.n_res)
+    j = lay.jacobian(p)
+    a, g = lay.normal_equations(p, w, r)
+    scale = np.max(np.abs(j.T @ j))
+    np.testing.assert_allclose(a, j.T @ (w[:, None] * j), rtol=0, atol=1e-12 * scale)
+    np.testing.assert_allclose(g, j.T @ (w * r), rtol=0, atol=1e-12 * np.max(np.abs(j)) * np.sum(np.abs(r)))
+    assert np.array_equal(a, a.T)
+    a1, g1 = lay.normal_equations(p)
+    assert g1 is None
+    np.testing.assert_allclose(a1, j.T @ j, rtol=0, atol=1e-12 * scale)
+    d = np.linalg.norm(p[:18].reshape(6, 1, 3) - p[lay.o_s:lay.o_e].reshape(1, 8, 3), axis=2)
+    c = problem.speed_of_sound_m_s
+    i, k = lay.m_mic[5], lay.m_ev[5]  # a TDOA-M row, eq. (6)
+    tau, delta, t = p[lay.o_tau:lay.o_del], p[lay.o_del:lay.o_s], problem.emission_times_s
+    pred = (d[i, k] - d[0, k]) / c + tau[i] - tau[0] + (delta[i] - delta[0]) * t[k]
+    assert lay.residuals(p)[lay.n_s + 5] == pytest.approx((pred - problem.tdoa_mics_s[k, i]) * lay.m_w, abs=1e-9)
+
+
 def test_mic_frame_definition_and_immutability():
     rng = np.random.default_rng(11)
     truth = make_truth(rng)
