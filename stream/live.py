@@ -160,6 +160,8 @@ def run_live(inputs: Sequence[str], out_dir: str | Path, *, output: str | None =
             defaults = EngineConfig().as_dict()
             engine = {k: v for k, v in cfg.as_dict().items()
                       if v != defaults[k] and k not in ("plots", "progress", "speed", "block_s")}
+            if engine.get("arrays"):   # the recording replays from any folder
+                engine["arrays"] = str(Path(engine["arrays"]).resolve())
             state["recorder"] = sinks.RecordingSink(record, source.active, engine=engine,
                                                     description=f"adhoc-array live --input {' --input '.join(inputs)}")
         if record is not None:

@@ -320,7 +320,7 @@ def run_stream(source, out_dir: str | Path, *, config: EngineConfig, fixture: Fi
     if extra_report is not None:
         extra_report(report)
     _finalise(report, out, cfg, pipeline, layout, fixture, names, collector, t_wall0, t_cpu0, wav, csv_sink,
-                  steady)
+              steady)
     return RunOutcome(report, pipeline, out)
 
 
