@@ -49,6 +49,8 @@ from .stopping import install_stop_handlers as _install_stop_handlers
 log = logging.getLogger(__name__)
 
 PREFIX = "adhoc"
+DEPARTURE_GRACE_S = 0.5  # a token gone without a LAST frame: a departure only if none comes this soon (lossy links
+#                          retransmit the last frames after the token's DELETE has arrived)
 CHORES_S = 0.02          # how often the aggregator checks presence, conceals silent devices and the end
 DEFAULT_PORT = 7447
 
@@ -455,6 +457,7 @@ class _Lane:
     gone_since_s: float | None = None  # monotonic time its liveliness token went (None: present)
     said_last: bool = False            # its sender ended its stream cleanly (a LAST frame)
     seq: int = 0
+    leaving_since_s: float | None = None   # its token went without a LAST frame yet (see DEPARTURE_GRACE_S)
 
 
 class NetSource:
@@ -736,13 +739,18 @@ class NetSource:
                     lane.gone_since_s = None
                 elif lane.gone_since_s is None:
                     lane.gone_since_s = now
-                if was and not dev.present and lane.said_last:
-                    log.info("Device '%s' ended its stream after %.1f s.", name, lane.pos / dev.sample_rate_hz)
-                elif was and not dev.present:
-                    lane.buffer.counters.n_departures += 1
-                    dev.problem(f"Device '{name}' left the array after {lane.pos / dev.sample_rate_hz:.1f} s; "
-                                "it is concealed until it comes back.")
-                elif dev.present and not was and lane.started:
+                if was and not dev.present:
+                    lane.leaving_since_s = now     # ended cleanly or left: its LAST frame decides (below)
+                if lane.leaving_since_s is not None:
+                    if lane.said_last:
+                        lane.leaving_since_s = None
+                        log.info("Device '%s' ended its stream after %.1f s.", name, lane.pos / dev.sample_rate_hz)
+                    elif dev.present or now - lane.leaving_since_s >= DEPARTURE_GRACE_S:
+                        lane.leaving_since_s = None
+                        lane.buffer.counters.n_departures += 1
+                        dev.problem(f"Device '{name}' left the array after {lane.pos / dev.sample_rate_hz:.1f} s; "
+                                    "it is concealed until it comes back.")
+                if dev.present and not was and lane.started:
                     lane.said_last = False
                     log.info("Device '%s' is back.", name)
             # frames released by the jitter buffers, placed on each device's engine-side clock
