@@ -14,11 +14,16 @@ from .hybrid_tdoa import (CalibrationResult, CrlbResult, HybridTdoaProblem, MicF
                           RejectedMeasurement, crlb, estimate_noise_levels, mic_frame_error, random_initial_scene,
                           simulate_problem, to_mic_frame, without_rejected)
 from .hybrid_tdoa import solve as solve_hybrid_tdoa
+from .geometry import GEOMETRY_FORMAT, ArrayPlacement, Geometry, load_geometry
 from .multi_array import (ArrayPose, CalibrationInputError, MultiArrayCalibration, calibrate_arrays,
                           calibrate_from_locations, localization_covariance, localize_spherical_ls, refine_mle,
                           rigid_body_ransac, rotation_error_deg, translation_angle_error_deg)
 
 __all__ = [
+    "ArrayPlacement",
+    "Geometry",
+    "GEOMETRY_FORMAT",
+    "load_geometry",
     "RejectedMeasurement",
     "without_rejected",
     "ArrayPose",

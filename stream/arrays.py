@@ -248,9 +248,9 @@ def run_multi_array(arrays: str | Path, out_dir: str | Path, *, method: str = "m
 
 
 def multi_array_geometry(specs: Sequence[ArraySpec], result, *, n_probes: int, solve_s: float = float("nan")):
-    """The arrays' poses as a :class:`stream.geometry.Geometry` (the stream's geometry object): every mic a
+    """The arrays' poses as a :class:`estimators.geometry.Geometry` (the stream's geometry object): every mic a
     device (``NAME.k``) at its posed position in the reference array's frame, each array an
-    :class:`~stream.geometry.ArrayPlacement` with its pose and standard deviations, the fused probes as the
+    :class:`~estimators.geometry.ArrayPlacement` with its pose and standard deviations, the fused probes as the
     events. Clock offsets and drifts between arrays are not observed by this calibration (NaN); the reference
     array's mics share its clock (0)."""
     from .geometry import ArrayPlacement, Geometry

@@ -20,7 +20,7 @@ Time conventions
   ``odometry_m[j]``; the engine knows the schedule and the odometry, not the absolute emission time. The
   arrival on device ``i``'s clock is ``T_ij = |x_i - s_j| / c + tau_i + (1 + delta_i) t_j``
   (:mod:`estimators.hybrid_tdoa`, eq. 4).
-- The resulting :class:`stream.geometry.Geometry` maps device 0's clock to every other device's clock.
+- The resulting :class:`estimators.geometry.Geometry` maps device 0's clock to every other device's clock.
 
 Calibration never blocks the stream: the pipeline calls :meth:`StreamCalibrator.step` once per block, which only
 checks ``future.done()``; a snapshot of the observations (small immutable arrays) is solved in a

@@ -140,7 +140,7 @@ class ChannelLayout:
                       np.ascontiguousarray(x[:, k]), frame.flags) for k in range(n_mics)]
 
     def placements(self) -> list[tuple[str, list[int], np.ndarray]]:
-        """``(name, channels, mics_m)`` of every array, for :meth:`stream.geometry.Geometry.with_arrays`."""
+        """``(name, channels, mics_m)`` of every array, for :meth:`estimators.geometry.Geometry.with_arrays`."""
         return [(spec.name, [c for c, ch in enumerate(self.channels) if ch.device_id == d],
                  np.asarray(spec.mics_m, float)) for d, spec in self.arrays.items()]
 

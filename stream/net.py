@@ -919,7 +919,7 @@ class NetPublisher:
                                       "gated": bool(t.gated), "track_id": t.track_id, "devices": self.names}))
 
     def geometry(self, geometry) -> None:
-        """Publish a calibrated geometry (:meth:`stream.geometry.Geometry.to_json`)."""
+        """Publish a calibrated geometry (:meth:`estimators.geometry.Geometry.to_json`)."""
         try:
             self._geometry.put(geometry.to_json())
         except Exception as err:  # noqa: BLE001 - publishing must not stop the stream

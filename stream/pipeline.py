@@ -438,7 +438,7 @@ class Pipeline:
         """Swap in a new geometry at a frame boundary (effective from the next block).
 
         Per device ``i >= 1``, with the clock model ``c_i = c_0 + offset_i + drift_i (c_0 - epoch)``
-        (:mod:`stream.geometry`):
+        (:mod:`estimators.geometry`):
 
         - drift (``calibration_apply = "drift"``, once its CRLB standard deviation is at most
           ``calibration_max_drift_std_ppm``): the device's resampler takes the rate ``q = 1 + drift_i``; its
