@@ -25,7 +25,7 @@ import soundfile as sf
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from stream import metrics  # noqa: E402
+from stream.scoring import metrics  # noqa: E402
 from stream.config import EngineConfig  # noqa: E402
 from stream.run import run_replay  # noqa: E402
 

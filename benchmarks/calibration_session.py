@@ -43,7 +43,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 import estimators  # noqa: E402
-from stream import metrics  # noqa: E402
+from stream.scoring import metrics  # noqa: E402
 from stream.geometry import Geometry  # noqa: E402
 
 SPEECH = REPO / "replay_fixtures" / "meeting_table" / "truth" / "clean.flac"

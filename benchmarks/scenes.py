@@ -26,7 +26,7 @@ dBFS, one device at 44.1 or 48 kHz in half of the scenes.
 Figures per scene and estimator:
 
 - ``si_sdr_db`` of the engine's output, ``oracle_db``: delay-and-sum steered by the active talker's true TOA on
-  the synchronous signals, ``best_single_db``: the best single device (both from ``stream.evaluate``);
+  the synchronous signals, ``best_single_db``: the best single device (both from ``stream.scoring.evaluate``);
 - ``toa_within_0p25ms``: fraction of the active talker's speech frames, from 2 s after the first speech, in
   which every device's steered TOA is within 0.25 ms of that talker's true TOA;
 - ``noise_steer_s``: seconds of speech frames in which the beam points at the noise source (every device
@@ -241,7 +241,7 @@ def run_scene(args) -> dict:
     kind, snr, scene, estimators, cache, data, overrides = args
     logging.disable(logging.WARNING)
     from stream.config import EngineConfig
-    from stream.fixture import load_fixture
+    from stream.scoring.fixture import load_fixture
     from stream.run import run_replay
     folder = cache / scene.name
     stamp = folder / "scene.repr"

@@ -584,7 +584,7 @@ def bench_engine_tracks(repeats: int, data: pathlib.Path | None = None) -> dict:
     ``Pipeline.process_block`` time per hop, also as a ratio to the FFT floor of 8 x 512."""
     import logging
 
-    from stream.fixture import load_fixture
+    from stream.scoring.fixture import load_fixture
     from stream.run import run_replay
 
     logging.getLogger().setLevel(logging.ERROR)

@@ -19,7 +19,7 @@ from . import sinks
 from .calibration import CalibrationSnapshot, OdometryLog, StreamCalibrator, load_odometry_csv
 from .config import EngineConfig, merge
 from .errors import AdhocArrayError, InputFileError, StreamError
-from .fixture import Fixture, is_fixture_dir, load_fixture
+from .scoring.fixture import Fixture, is_fixture_dir, load_fixture
 from .geometry import Geometry
 from .pipeline import Pipeline
 from .channels import ChannelLayout
@@ -451,7 +451,7 @@ def _finalise(report, out, cfg, pipeline, layout, fixture, names, collector, t_w
                     log.warning("The geometry plot could not be drawn (%s: %s); geometry.json is written.",
                                 type(err).__name__, err)
         if fixture is not None and report["status"] == "ok":
-            from .evaluate import evaluate_run
+            from .scoring.evaluate import evaluate_run
             # an array's mics are scored against their device's truth (its position: the mics are centimetres apart)
             index = ([names.index(active[c.device_id]["name"]) for c in layout.channels] if names else
                      [c.device_id for c in layout.channels])
@@ -471,7 +471,7 @@ def _finalise(report, out, cfg, pipeline, layout, fixture, names, collector, t_w
 
 def _plots(out: Path, pipeline: Pipeline, layout: ChannelLayout, fixture: Fixture | None, names,
            cfg: EngineConfig) -> None:
-    from . import metrics, plots
+    from .scoring import metrics, plots
     try:
         time_s, toa_s, gated = pipeline.toa_track()
         true_t = true_toa = None

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import soundfile as sf
 
-from stream import metrics
+from stream.scoring import metrics
 from stream.align import Aligner
 from stream.channels import ChannelLayout
 from stream.cli import main

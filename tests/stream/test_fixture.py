@@ -10,7 +10,7 @@ import pytest
 import scipy.signal
 import soundfile as sf
 
-from stream.fixture import Fixture, FixtureError, is_fixture_dir, load_fixture
+from stream.scoring.fixture import Fixture, FixtureError, is_fixture_dir, load_fixture
 
 FIXTURE_ROOT = Path(__file__).resolve().parents[2] / "replay_fixtures"
 NAMES = ("meeting_table", "walking_talker", "async_8dev", "kitchen_noise", "two_talkers")

@@ -21,7 +21,7 @@ import pytest
 import soundfile as sf
 
 from stream.errors import StreamError
-from stream.fixture import load_fixture
+from stream.scoring.fixture import load_fixture
 
 from tests.conftest import REPO_FIXTURES
 

@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from stream.metrics import (
+from stream.scoring.metrics import (
     align_to_reference,
     sar_db,
     sdr_db,
@@ -97,7 +97,7 @@ def test_align_to_reference_recovers_a_known_lag(lag, extra):
 
 def test_silent_inputs_give_nan_and_a_warning(caplog):
     x = _signal(8000)
-    with caplog.at_level(logging.WARNING, logger="stream.metrics"):
+    with caplog.at_level(logging.WARNING, logger="stream.scoring.metrics"):
         assert math.isnan(si_sdr_db(np.zeros_like(x), x))
         assert math.isnan(si_sdr_db(x, np.zeros_like(x)))
         assert math.isnan(sdr_db(np.zeros_like(x), x))

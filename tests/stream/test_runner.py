@@ -192,7 +192,7 @@ def test_the_smoothers_lag_is_honoured(tmp_path):
     np.testing.assert_array_equal(tk, ts)
     yk, ys = k.pipeline.enhanced_signal(), s.pipeline.enhanced_signal()
     assert len(yk) == len(ys) == len(sf.read(tmp_path / "s" / "enhanced.wav")[0])
-    from stream import metrics
+    from stream.scoring import metrics
     _, lag = metrics.align_to_reference(ys, yk, max_lag_samples=2000)
     assert lag == 0
     assert metrics.si_sdr_db(ys, yk) > 10.0
@@ -203,7 +203,7 @@ def test_the_smoothers_lag_is_honoured(tmp_path):
 def test_a_re_check_over_the_silence_after_the_end_does_not_move_devices(tmp_path):
     """meeting_table followed by 4 s of digital silence (a live recording that went on after the talk), with the
     live settings: the re-check over a window that is half silence moves nothing, and the talker is tracked."""
-    from stream.fixture import load_fixture
+    from stream.scoring.fixture import load_fixture
     from tests.conftest import REPO_FIXTURES
     fx = load_fixture(REPO_FIXTURES / "meeting_table")
     paths = []
@@ -266,7 +266,7 @@ def test_a_late_device_does_not_stall_the_others(make_devices, tmp_path):
 def test_leading_digital_silence_does_not_mislead_the_first_alignment(tmp_path):
     """Cards started 0.56 s before the room made a sound (every device's stream starts with digital silence):
     the first alignment finds the same offsets as without it, and no re-check has to repair them."""
-    from stream.fixture import load_fixture
+    from stream.scoring.fixture import load_fixture
     from tests.conftest import REPO_FIXTURES
     fx = load_fixture(REPO_FIXTURES / "meeting_table")
     paths = []

@@ -10,7 +10,7 @@ import pytest
 import soundfile as sf
 
 from stream.config import EngineConfig
-from stream.fixture import load_fixture
+from stream.scoring.fixture import load_fixture
 from stream.run import run_replay
 from stream.speech import SpeechPresence, make_speech_presence
 

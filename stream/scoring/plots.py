@@ -151,7 +151,7 @@ def plot_segmental_sar(
     sample_rate_hz : float
         Sample rate in hertz.
     segment_start_s : ndarray, shape (n_segments,), seconds
-        Start of each segment (equal lengths, from :func:`stream.metrics.segmental_sar_db`).
+        Start of each segment (equal lengths, from :func:`stream.scoring.metrics.segmental_sar_db`).
     sar_db : ndarray, shape (n_segments,), dB
         SAR per segment (``nan`` where undefined).
     is_speech : ndarray, shape (n_segments,), bool

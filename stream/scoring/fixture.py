@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 import soundfile as sf
 
-from .errors import InputFileError
+from ..errors import InputFileError
 
 try:
     import tomllib

@@ -11,9 +11,9 @@ import numpy as np
 import beamform
 
 from . import metrics
-from .config import EngineConfig
+from ..config import EngineConfig
 from .fixture import Fixture
-from .pipeline import Pipeline, make_estimator
+from ..pipeline import Pipeline, make_estimator
 
 log = logging.getLogger(__name__)
 
