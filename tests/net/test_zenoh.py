@@ -314,8 +314,9 @@ def test_a_slow_engine_keeps_a_bounded_backlog():
                 pub.put(wire.encode(np.full(1024, seq / 1000, np.float32), seq=seq, first_sample=seq * 1024,
                                     sample_rate_hz=RATE, instance=5))
             t_end = time.monotonic() + 10
-            while source.report()["devices"]["d"]["n_overrun_frames"] < 184 and time.monotonic() < t_end:
-                time.sleep(0.05)
+            while source.report()["devices"]["d"]["n_overrun_frames"] < 185 and time.monotonic() < t_end:
+                time.sleep(0.05)   # (waiting for 184 and asserting 185 raced the last frames' arrival)
+            time.sleep(0.2)        # no more drops come: all 200 frames have arrived
             assert source.report()["devices"]["d"]["n_overrun_frames"] == 185   # 15 frames (<= 1 s) are kept
             frames = []
             for frame in source:
