@@ -1,4 +1,5 @@
-"""Array calibration from a moving chirp beacon: batch (files) and periodic, in the stream.
+"""Array calibration from a moving chirp beacon, periodic in the stream (the solve, the observations, the
+calibrator); its file formats are in :mod:`stream.calibration_files`, the batch command in :mod:`stream.calibrate_cli`.
 
 ::
 
@@ -31,14 +32,11 @@ from __future__ import annotations
 
 import collections
 import concurrent.futures
-import csv
 import dataclasses
-import json
 import logging
 import math
 import threading
 import time
-from pathlib import Path
 from typing import Any, Callable, Literal, Sequence
 
 import numpy as np
@@ -47,7 +45,7 @@ import estimators
 from estimators.chirps import ChirpDetector
 
 from .condition import ClockMap
-from .errors import AdhocArrayError, ConfigError, InputFileError
+from .errors import AdhocArrayError, ConfigError
 from .geometry import Geometry
 
 log = logging.getLogger(__name__)
@@ -59,10 +57,6 @@ __all__ = [
     "OdometryLog",
     "StreamCalibrator",
     "calibrate",
-    "calibrate_recordings",
-    "load_measurements",
-    "load_odometry_csv",
-    "run_calibrate",
     "solve_geometry",
 ]
 
@@ -131,156 +125,6 @@ class OdometryLog:
         return odo, iv
 
 
-_COLUMNS = {"dx": ("dx", "dx_m"), "dy": ("dy", "dy_m"), "dz": ("dz", "dz_m"),
-            "interval": ("interval", "interval_s", "dt", "dt_s")}
-
-
-def load_odometry_csv(path: str | Path, *, interval_s: float | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Read the beacon's odometry: one row per step between consecutive chirps.
-
-    Header ``dx_m,dy_m,dz_m,interval_s`` (also ``dx,dy,dz,dt``); row ``j`` is the displacement from chirp
-    ``j`` to chirp ``j + 1`` in metres (odometry frame) and the time between their emissions in seconds.
-    Without an interval column every interval is ``interval_s``. Empty cells are NaN (missing odometry).
-
-    Returns
-    -------
-    odometry_m : ndarray, shape (n_steps, 3)
-    interval_s : ndarray, shape (n_steps,)
-    """
-    path = Path(path)
-    try:
-        with open(path, newline="") as fh:
-            rows = list(csv.reader(fh))
-    except OSError as err:
-        raise InputFileError(f"Odometry file {path} cannot be read ({err}).") from None
-    rows = [r for r in rows if r and not r[0].lstrip().startswith("#")]
-    if len(rows) < 3:
-        raise InputFileError(f"Odometry file {path} needs a header and at least 2 steps (3 chirps).")
-    header = [h.strip().lower() for h in rows[0]]
-    col = {}
-    for key, names in _COLUMNS.items():
-        hits = [header.index(n) for n in names if n in header]
-        if hits:
-            col[key] = hits[0]
-    missing = [k for k in ("dx", "dy", "dz") if k not in col]
-    if missing:
-        raise InputFileError(f"Odometry file {path} has no column {missing[0]}_m; the header must be "
-                             "dx_m,dy_m,dz_m[,interval_s].")
-    if "interval" not in col and interval_s is None:
-        raise InputFileError(f"Odometry file {path} has no interval_s column; give the chirp interval "
-                             "(--chirp-interval-s).")
-
-    def num(cell: str) -> float:
-        cell = cell.strip()
-        return float(cell) if cell else float("nan")
-
-    try:
-        odo = np.array([[num(r[col["dx"]]), num(r[col["dy"]]), num(r[col["dz"]])] for r in rows[1:]])
-        iv = (np.array([num(r[col["interval"]]) for r in rows[1:]]) if "interval" in col
-              else np.full(len(rows) - 1, float(interval_s)))
-    except (ValueError, IndexError) as err:
-        raise InputFileError(f"Odometry file {path} has a malformed row ({err}).") from None
-    if not np.all(np.isfinite(iv) & (iv > 0)):
-        raise InputFileError(f"Odometry file {path}: every interval must be a positive number of seconds.")
-    return odo, iv
-
-
-@dataclasses.dataclass(frozen=True)
-class Measurements:
-    """A calibration problem read from a file, with its ground truth when the file has one."""
-
-    problem: estimators.HybridTdoaProblem
-    truth_positions_m: np.ndarray | None
-    device_names: tuple[str, ...]
-    source: str
-
-
-# the authors' M = 6 selection with i = j = k = 1 (benchmarks/hybrid_tdoa_real.py): arrays 1, 2, 3, then 2, 3, 3
-SHARED_DEFAULT_MICS = (0, 6, 12, 9, 13, 15)
-
-
-def load_measurements(path: str | Path, *, mics: Sequence[int] | None = None, sigma_tdoa_s: float | None = None,
-                      sigma_odo_m: float | None = None) -> Measurements:
-    """Read measured TDOAs and odometry.
-
-    Two formats:
-
-    - ours (``.npz`` or ``.json``): ``tdoa_events_s`` (K-1, N) TDOA-S (optional), ``tdoa_mics_s`` (K, N) TDOA-M
-      against device 0, ``odometry_m`` (K-1, 3), ``interval_s`` (K-1,), ``sigma_tdoa_s``, ``sigma_odo_m``, and
-      optionally ``sigma_tdoa_mics_s``, ``speed_of_sound_m_s``, ``truth_positions_m`` (N, 3),
-      ``device_names``; NaN (JSON null) marks a missed chirp.
-    - the hybrid-TDOA real data (``recNN.npz`` of ``../shared/data/hybrid_tdoa_real``): ``tdoa_s``,
-      ``tdoa_m_arr2/3``, ``S``, ``dt``; ``mics`` are global mic numbers (0-17), the first one of array 1
-      (the reference; default: the authors' 6-mic case ``i = j = k = 1``).
-    """
-    path = Path(path)
-    if not path.exists():
-        raise InputFileError(f"Measurement file {path} does not exist.")
-    try:
-        if path.suffix.lower() == ".json":
-            data = {k: (np.array(v, dtype=float) if isinstance(v, list) and k != "device_names" else v)
-                    for k, v in json.loads(path.read_text()).items()}
-        else:
-            with np.load(path, allow_pickle=False) as z:
-                data = {k: z[k] for k in z.files}
-    except (OSError, ValueError, json.JSONDecodeError) as err:
-        raise InputFileError(f"Measurement file {path} cannot be read ({err}).") from None
-    try:
-        if "tdoa_m_arr2" in data:
-            return _shared_measurements(data, path, mics, sigma_tdoa_s, sigma_odo_m)
-        return _own_measurements(data, path, sigma_tdoa_s, sigma_odo_m)
-    except KeyError as err:
-        raise InputFileError(f"Measurement file {path} lacks the entry {err}; see `adhoc-array calibrate -h` "
-                             "for the format.") from None
-    except ValueError as err:
-        raise InputFileError(f"Measurement file {path} is inconsistent: {err}.") from None
-
-
-def _own_measurements(d: dict, path: Path, sigma_tdoa_s, sigma_odo_m) -> Measurements:
-    tm = np.asarray(d["tdoa_mics_s"], float)
-    te = d.get("tdoa_events_s")
-    te = None if te is None or np.size(te) == 0 else np.asarray(te, float)
-    problem = estimators.HybridTdoaProblem(
-        tdoa_events_s=te, tdoa_mics_s=tm, odometry_m=np.asarray(d["odometry_m"], float),
-        interval_s=np.asarray(d["interval_s"], float),
-        sigma_tdoa_s=float(sigma_tdoa_s if sigma_tdoa_s is not None else d["sigma_tdoa_s"]),
-        sigma_odo_m=float(sigma_odo_m if sigma_odo_m is not None else d["sigma_odo_m"]),
-        speed_of_sound_m_s=float(d.get("speed_of_sound_m_s", estimators.SPEED_OF_SOUND_M_S)),
-        sigma_tdoa_mics_s=(float(d["sigma_tdoa_mics_s"]) if d.get("sigma_tdoa_mics_s") is not None
-                           and sigma_tdoa_s is None else None))
-    truth = d.get("truth_positions_m")
-    names = d.get("device_names")
-    names = tuple(str(s) for s in np.asarray(names).tolist()) if names is not None else \
-        tuple(f"dev{i}" for i in range(problem.n_mics))
-    return Measurements(problem, None if truth is None else np.asarray(truth, float), names, str(path))
-
-
-def _shared_measurements(d: dict, path: Path, mics, sigma_tdoa_s, sigma_odo_m) -> Measurements:
-    glob = list(SHARED_DEFAULT_MICS if mics is None else mics)
-    if len(glob) < 3 or len(set(glob)) != len(glob) or not all(0 <= g < 18 for g in glob):
-        raise ValueError(f"mics={glob} must be >= 3 distinct global mic numbers in 0..17")
-    ref = glob[0]
-    if ref >= 6:
-        raise ValueError(f"the first mic ({ref}) must belong to array 1 (0..5): TDOA-M exists only against it")
-    n_ev = d["tdoa_s"].shape[0] + 1
-    tm = np.full((n_ev, len(glob)), np.nan)
-    for col, g in enumerate(glob):
-        if 6 <= g < 12:
-            tm[:, col] = d["tdoa_m_arr2"][ref, g - 6]
-        elif g >= 12:
-            tm[:, col] = d["tdoa_m_arr3"][ref, g - 12]
-    problem = estimators.HybridTdoaProblem(
-        tdoa_events_s=d["tdoa_s"][:, glob], tdoa_mics_s=tm, odometry_m=np.diff(d["S"], axis=0),
-        interval_s=d["dt"][1:], sigma_tdoa_s=float(sigma_tdoa_s if sigma_tdoa_s is not None else d["sigma_tdoa"]),
-        sigma_odo_m=float(sigma_odo_m if sigma_odo_m is not None else d["sigma_odo"]),
-        speed_of_sound_m_s=float(d["c"]))
-    names = tuple(f"a{g // 6 + 1}m{g % 6 + 1}" for g in glob)
-    return Measurements(problem, np.asarray(d["mic_pos_s"], float)[glob], names, str(path))
-
-
-# ----------------------------------------------------------------------------------------------------------------
-# Solving: problem -> Geometry (pure; runs in the worker)
-# ----------------------------------------------------------------------------------------------------------------
 def solve_geometry(problem: estimators.HybridTdoaProblem, *, method: Method = "hybrid",
                    rng: np.random.Generator | int | None = 0, reference_onsets_s: np.ndarray | None = None,
                    solved_at_time_s: float = float("nan"), first_event: int = 0,
@@ -933,106 +777,3 @@ class StreamCalibrator:
 # ----------------------------------------------------------------------------------------------------------------
 # Batch calibration (adhoc-array calibrate)
 # ----------------------------------------------------------------------------------------------------------------
-def _read_mono(path: Path) -> tuple[np.ndarray, float]:
-    import soundfile as sf
-    try:
-        x, rate = sf.read(str(path), dtype="float64", always_2d=True)
-    except (sf.LibsndfileError, RuntimeError, OSError) as err:
-        raise InputFileError(f"{path} is not a readable audio file ({err}).") from None
-    return x.mean(axis=1), float(rate)
-
-
-def calibrate_recordings(paths: Sequence[str | Path], odometry_m: np.ndarray, interval_s: np.ndarray, *,
-                         chirp_duration_s: float, chirp_f0_hz: float, chirp_f1_hz: float,
-                         sigma_tdoa_s: float, sigma_odo_m: float, method: Method = "hybrid",
-                         speed_of_sound_m_s: float = estimators.SPEED_OF_SOUND_M_S,
-                         rng: np.random.Generator | int | None = 0) -> tuple[Geometry, np.ndarray]:
-    """Batch calibration from one recording per device (device 0 first) and the beacon's odometry.
-
-    Chirps are found with :func:`estimators.extract_tdoas` (matched filter, GCC-PHAT refinement, assignment to
-    the schedule). Devices at other rates are resampled to device 0's. Returns the geometry and the onsets
-    (K, N) on each device's clock.
-    """
-    streams, rates = [], []
-    for p in paths:
-        x, r = _read_mono(Path(p))
-        streams.append(x)
-        rates.append(r)
-    fs = rates[0]
-    if any(r != fs for r in rates):
-        import soxr
-        streams = [x if r == fs else soxr.resample(x, r, fs) for x, r in zip(streams, rates)]
-    template = estimators.linear_chirp(duration_s=chirp_duration_s, f0_hz=chirp_f0_hz, f1_hz=chirp_f1_hz,
-                                       sample_rate_hz=fs)
-    ch = estimators.extract_tdoas(streams, template, sample_rate_hz=fs, interval_s=np.asarray(interval_s, float))
-    on = ch.onsets_s
-    counts = np.sum(np.isfinite(on), axis=0)
-    if counts[0] < MIN_DETECTIONS:
-        raise CalibrationError(f"{paths[0]} (device 0) holds only {int(counts[0])} of the {len(on)} scheduled "
-                               "chirps; check the chirp settings and the odometry's intervals.")
-    snap = CalibrationSnapshot(onsets_s=on, odometry_m=odometry_m, interval_s=interval_s, first_event=0,
-                               time_s=float("nan"), sigma_tdoa_s=sigma_tdoa_s, sigma_odo_m=sigma_odo_m,
-                               method=method, speed_of_sound_m_s=speed_of_sound_m_s,
-                               device_names=tuple(Path(p).stem for p in paths))
-    return calibrate(snap, rng=rng), on
-
-
-def run_calibrate(out_dir: str | Path, *, measurements: str | Path | None = None,
-                  audio: Sequence[str | Path] = (), odometry: str | Path | None = None, method: Method = "hybrid",
-                  mics: Sequence[int] | None = None, chirp_interval_s: float | None = None,
-                  chirp_duration_s: float = 0.1, chirp_f0_hz: float = 500.0, chirp_f1_hz: float = 6000.0,
-                  sigma_tdoa_s: float | None = None, sigma_odo_m: float | None = None, seed: int = 0,
-                  plots: bool = True) -> dict[str, Any]:
-    """``adhoc-array calibrate``: solve, write ``geometry.json`` (and ``geometry.png``) in ``out_dir``.
-
-    Returns the summary that is also written to ``calibration.json`` (geometry, errors against the file's
-    ground truth when it has one).
-    """
-    if method not in ("hybrid", "baseline"):
-        raise ConfigError(f"method={method!r} must be 'hybrid' or 'baseline'")
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    truth = None
-    t0 = time.perf_counter()
-    if measurements is not None:
-        if audio:
-            raise ConfigError("Give either --measurements or audio files with --odometry, not both.")
-        m = load_measurements(measurements, mics=mics, sigma_tdoa_s=sigma_tdoa_s, sigma_odo_m=sigma_odo_m)
-        if method == "hybrid" and m.problem.tdoa_events_s is None:
-            raise ConfigError(f"{measurements} has no tdoa_events_s (TDOA-S); use --method baseline.")
-        geometry = solve_geometry(m.problem, method=method, rng=seed, device_names=m.device_names)
-        truth, source = m.truth_positions_m, m.source
-    else:
-        if not audio or odometry is None:
-            raise ConfigError("Give --measurements FILE, or one audio file per device and --odometry FILE.")
-        if len(audio) < 3:
-            raise ConfigError(f"{len(audio)} audio files were given; calibration needs at least 3 devices.")
-        odo, iv = load_odometry_csv(odometry, interval_s=chirp_interval_s)
-        geometry, _ = calibrate_recordings(
-            audio, odo, iv, chirp_duration_s=chirp_duration_s, chirp_f0_hz=chirp_f0_hz, chirp_f1_hz=chirp_f1_hz,
-            sigma_tdoa_s=sigma_tdoa_s if sigma_tdoa_s is not None else 5e-5,
-            sigma_odo_m=sigma_odo_m if sigma_odo_m is not None else 0.01, method=method, rng=seed)
-        source = ", ".join(str(a) for a in audio)
-    wall_s = time.perf_counter() - t0
-    geometry.save(out / "geometry.json")
-    summary: dict[str, Any] = {"source": source, "method": method, "verdict": geometry.verdict,
-                               "n_devices": geometry.n_devices, "n_events": geometry.n_events,
-                               "solve_time_s": geometry.solve_time_s, "wall_s": wall_s}
-    if truth is not None:
-        est = geometry.mic_frame_positions_m()
-        tru = Geometry(positions_m=truth, position_std_m=np.zeros(len(truth)), offsets_s=np.zeros(len(truth)),
-                       offset_std_s=np.zeros(len(truth)), drifts_ppm=np.zeros(len(truth)),
-                       drift_std_ppm=np.zeros(len(truth)), verdict="truth", n_events=0).mic_frame_positions_m()
-        err = np.linalg.norm(est - tru, axis=1)
-        summary["location_error_m"] = {"rms": float(np.sqrt(np.mean(err[1:] ** 2))), "per_device": err.tolist()}
-    if plots:
-        from .geometry import plot_geometry
-        try:
-            plot_geometry(out / "geometry.png", geometry)
-        except Exception as err:  # noqa: BLE001 - the JSON is the product; a plot failure is one sentence
-            log.warning("The geometry plot could not be drawn (%s: %s); geometry.json is written.",
-                        type(err).__name__, err)
-    summary["outputs"] = sorted({p.name for p in out.iterdir()} | {"calibration.json"})
-    from .sinks import write_json
-    write_json(out / "calibration.json", {**summary, "geometry": geometry.to_dict()})
-    return {**summary, "geometry": geometry}

@@ -429,7 +429,7 @@ def _run_calibrate(args: argparse.Namespace) -> int:
                                  seed=args.seed, plots=args.plots)
         print(multi_array_summary(result, Path(args.out)))
         return 0 if result["converged"] else 1
-    from .calibration import run_calibrate
+    from .calibrate_cli import run_calibrate
     mics = None
     if args.mics:
         try:

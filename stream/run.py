@@ -16,7 +16,8 @@ import numpy as np
 from tqdm import tqdm
 
 from . import sinks
-from .calibration import CalibrationSnapshot, OdometryLog, StreamCalibrator, load_odometry_csv
+from .calibration import CalibrationSnapshot, OdometryLog, StreamCalibrator
+from .calibration_files import load_odometry_csv
 from .config import EngineConfig, merge
 from .errors import AdhocArrayError, InputFileError, StreamError
 from .scoring.fixture import Fixture, is_fixture_dir, load_fixture

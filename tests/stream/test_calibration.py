@@ -21,8 +21,8 @@ from hypothesis import strategies as st
 
 import estimators
 from estimators import ChirpDetector
-from stream.calibration import (CalibrationSnapshot, OdometryLog, StreamCalibrator, calibrate,
-                                load_measurements, load_odometry_csv)
+from stream.calibration import CalibrationSnapshot, OdometryLog, StreamCalibrator, calibrate
+from stream.calibration_files import load_measurements, load_odometry_csv
 from stream.condition import ClockMap, RetunableConditioner
 from stream.cli import main
 from stream.config import EngineConfig
