@@ -36,6 +36,11 @@ TURN = np.array([[0, -1, 0], [1, 0, 0], [0, 0, 1]], float)
 OFFSET_S = {"A": 0.0, "B": 0.3, "phone": 0.12}
 
 
+def toml_rows(points_m: np.ndarray) -> str:
+    """``[[x, y, z], ...]`` of an arrays file's ``mics_m``."""
+    return "[" + ", ".join(f"[{v[0]:.4f}, {v[1]:.4f}, {v[2]:.4f}]" for v in points_m) + "]"
+
+
 def simulate(folder: Path, *, snr_db: float, seed: int = 0, rt60_s: float = 0.3):
     """Write A.wav, B.wav, phone.wav and arrays.toml; return the dry talker and every channel's true TOA."""
     import pyroomacoustics as pra
@@ -57,8 +62,7 @@ def simulate(folder: Path, *, snr_db: float, seed: int = 0, rt60_s: float = 0.3)
     cols = {"A": slice(0, 4), "B": slice(4, 8), "phone": slice(8, 9)}
     for k in local:
         sf.write(folder / f"{k}.wav", x[cols[k]].T[int(OFFSET_S[k] * FS):].astype(np.float32), FS, subtype="FLOAT")
-    rows = lambda a: "[" + ", ".join(f"[{v[0]:.4f}, {v[1]:.4f}, {v[2]:.4f}]" for v in a) + "]"  # noqa: E731
-    (folder / "arrays.toml").write_text("".join(f'[[array]]\nname = "{k}"\nmics_m = {rows(local[k])}\n\n'
+    (folder / "arrays.toml").write_text("".join(f'[[array]]\nname = "{k}"\nmics_m = {toml_rows(local[k])}\n\n'
                                                 for k in ("A", "B")))
     toa = np.linalg.norm(mics - talker, axis=1) / C - np.repeat([OFFSET_S[k] for k in local], [4, 4, 1])
     return clean.astype(np.float32), toa - toa[0]

@@ -139,6 +139,12 @@ class ChannelLayout:
         return [Frame(c0 + k, frame.seq, frame.first_sample, frame.sample_rate_hz,
                       np.ascontiguousarray(x[:, k]), frame.flags) for k in range(n_mics)]
 
+    def source_index(self, names) -> list[int]:
+        """Each channel's device as an index into ``names`` (a fixture's device names; None: the source's own
+        order). An array's mics share their device's index: they are scored against its truth."""
+        return ([list(names).index(self.device_names[c.device_id]) for c in self.channels] if names else
+                [c.device_id for c in self.channels])
+
     def placements(self) -> list[tuple[str, list[int], np.ndarray]]:
         """``(name, channels, mics_m)`` of every array, for :meth:`estimators.geometry.Geometry.with_arrays`."""
         return [(spec.name, [c for c, ch in enumerate(self.channels) if ch.device_id == d],

@@ -453,11 +453,8 @@ def _finalise(report, out, cfg, pipeline, layout, fixture, names, collector, t_w
                                 type(err).__name__, err)
         if fixture is not None and report["status"] == "ok":
             from .scoring.evaluate import evaluate_run
-            # an array's mics are scored against their device's truth (its position: the mics are centimetres apart)
-            index = ([names.index(active[c.device_id]["name"]) for c in layout.channels] if names else
-                     [c.device_id for c in layout.channels])
             try:
-                report["metrics"] = evaluate_run(pipeline, fixture, index)
+                report["metrics"] = evaluate_run(pipeline, fixture, layout.source_index(names))
             except Exception as err:  # noqa: BLE001 - scoring must not lose the outputs
                 log.exception("Scoring against the fixture's truth failed")
                 report["metrics_error"] = f"{type(err).__name__}: {err}"
@@ -477,9 +474,7 @@ def _plots(out: Path, pipeline: Pipeline, layout: ChannelLayout, fixture: Fixtur
         time_s, toa_s, gated = pipeline.toa_track()
         true_t = true_toa = None
         dev_names = layout.names
-        # each channel's device in the fixture (an array's mics: their device)
-        index = ([names.index(layout.device_names[c.device_id]) for c in layout.channels] if names else
-                 [c.device_id for c in layout.channels])
+        index = layout.source_index(names)
         if fixture is not None and fixture.truth_toa is not None:
             true_t, true_all = fixture.load_truth_toa()
             true_toa = true_all[:, index] - true_all[:, index[:1]]

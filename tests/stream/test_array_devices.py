@@ -4,7 +4,9 @@ phone in a simulated room (pyroomacoustics, RT60 0.3 s, the talker of ``meeting_
 is steered at its own TOA."""
 from __future__ import annotations
 
+import importlib.util
 import io
+import sys
 import threading
 from pathlib import Path
 
@@ -22,46 +24,31 @@ from stream.replay import DeviceInfo
 from stream.run import run_replay
 
 REPO = Path(__file__).resolve().parents[2]
-FS = 16000
-C = 343.0
-SQUARE = 0.05 * np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], float)   # 10 cm side
-TURN = np.array([[0, -1, 0], [1, 0, 0], [0, 0, 1]], float)
-OFFSET_S = {"A": 0.0, "B": 0.3, "phone": 0.12}   # each recording starts this much later
 
 
-def _toml_rows(a: np.ndarray) -> str:
-    return "[" + ", ".join(f"[{v[0]:.4f}, {v[1]:.4f}, {v[2]:.4f}]" for v in a) + "]"
+def _bench():
+    """``benchmarks/array_devices.py``: the scene is built once, there."""
+    name = "array_devices_bench"
+    if name not in sys.modules:
+        spec = importlib.util.spec_from_file_location(name, REPO / "benchmarks" / "array_devices.py")
+        mod = importlib.util.module_from_spec(spec)
+        sys.modules[name] = mod
+        spec.loader.exec_module(mod)
+    return sys.modules[name]
+
+
+_B = _bench()
+FS, SQUARE, OFFSET_S, _toml_rows = _B.FS, _B.SQUARE, _B.OFFSET_S, _B.toml_rows
 
 
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory):
     """Files A.wav (4 ch), B.wav (4 ch, turned 90 degrees), phone.wav; arrays.toml; the clean talker and every
     channel's true relative TOA (direct path, in the device clocks)."""
-    pra = pytest.importorskip("pyroomacoustics")
+    pytest.importorskip("pyroomacoustics")
     folder = tmp_path_factory.mktemp("arrays")
-    rng = np.random.default_rng(5)
-    clean, fs = sf.read(REPO / "replay_fixtures/meeting_table/truth/clean.flac", dtype="float64")
-    assert fs == FS
-    dims = [5.0, 6.0, 3.0]
-    e_abs, max_order = pra.inverse_sabine(0.3, dims)
-    room = pra.ShoeBox(dims, fs=FS, materials=pra.Material(e_abs), max_order=min(max_order, 12))
-    talker = np.array([2.0, 3.8, 1.3])
-    room.add_source(talker, signal=clean)
-    local = {"A": SQUARE, "B": SQUARE @ TURN.T, "phone": np.zeros((1, 3))}
-    centre = {"A": np.array([1.5, 2.5, 0.8]), "B": np.array([3.2, 2.6, 0.8]), "phone": np.array([2.4, 2.2, 0.8])}
-    mics = np.vstack([centre[k] + local[k] for k in local])
-    room.add_microphone_array(mics.T)
-    room.simulate()
-    x = room.mic_array.signals[:, :len(clean)]
-    x = x + np.sqrt(np.mean(x ** 2) / 10 ** 1.5) * rng.standard_normal(x.shape)
-    x *= 0.5 / np.abs(x).max()
-    columns = {"A": slice(0, 4), "B": slice(4, 8), "phone": slice(8, 9)}
-    for k in local:
-        sf.write(folder / f"{k}.wav", x[columns[k]].T[int(OFFSET_S[k] * FS):].astype(np.float32), FS, subtype="FLOAT")
-    (folder / "arrays.toml").write_text("".join(f'[[array]]\nname = "{k}"\nmics_m = {_toml_rows(local[k])}\n\n'
-                                                for k in ("A", "B")))
-    toa = np.linalg.norm(mics - talker, axis=1) / C - np.repeat([OFFSET_S[k] for k in local], [4, 4, 1])
-    return folder, clean.astype(np.float32), toa - toa[0]
+    clean, toa = _B.simulate(folder, snr_db=15.0, seed=5)
+    return folder, clean, toa
 
 
 def _run(folder: Path, out: Path, **options):
