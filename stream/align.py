@@ -16,6 +16,9 @@ import time
 from typing import Iterator, Sequence
 from dataclasses import dataclass
 
+import math
+
+import numba
 import numpy as np
 import scipy.fft
 import scipy.signal
@@ -168,6 +171,21 @@ def _silent_share(x: np.ndarray, sample_rate_hz: float) -> float:
     return float(np.mean(ms < SILENCE_RMS ** 2))
 
 
+@numba.njit(cache=True, nogil=True)
+def _block_valid(samples, aligned, is_reference, covered, out):
+    """``out[d]``: device ``d`` is usable in this block: aligned (or the reference), at least half the hop received
+    (``covered``) and not digital silence (RMS of its samples at least ``SILENCE_RMS``). One compiled call per
+    block instead of a few small numpy calls."""
+    hop, n_dev = samples.shape
+    for d in range(n_dev):
+        e = 0.0
+        for i in range(hop):
+            v = float(samples[i, d])
+            e += v * v
+        out[d] = (aligned[d] or is_reference[d]) and covered[d] and math.sqrt(e / hop) >= SILENCE_RMS
+    return out
+
+
 class _SampleBuffer:
     """Growable float32 buffer: amortised O(1) appends, occasional compaction of the front."""
 
@@ -278,6 +296,7 @@ class Aligner:
         self._late = [False] * n_devices
         self.n_late_blocks = np.zeros(n_devices, dtype=np.int64)
         self._corrected = np.zeros(n_devices, bool)
+        self._any_corrected = False
         self._new_clock_pending: set[int] = set()
         self._ref_start: int | None = None     # reference sample of its first frame that is not a gap
         self._bufs = [_SampleBuffer() for _ in range(n_devices)]
@@ -443,6 +462,7 @@ class Aligner:
             return
         if correction:
             self._corrected[device_id] = True
+            self._any_corrected = True
         old = int(self.offsets_samples[device_id])
         self.offsets_samples[device_id] = old + int(delta_samples)
         t_s = self.next_block * self.hop_samples / self.sample_rate_hz
@@ -486,7 +506,7 @@ class Aligner:
             need = [s0 + self.window_samples + (int(self.max_offset_s * self.sample_rate_hz) if d else 0)
                     for d in range(self.n_devices)]
             have = all(self._ended[d] or self._received[d] >= need[d] for d in range(self.n_devices))
-            if not have and not (self._overdue() and self._received[0] >= need[0]):
+            if not have and not (self._received[0] >= need[0] and self._overdue()):
                 return
             self._initial_alignment()
         hop = self.hop_samples
@@ -519,19 +539,19 @@ class Aligner:
             if self.recheck_blocks and k > 0 and k % self.recheck_blocks == 0 and self._pending is None:
                 self._submit_recheck()
             samples = np.zeros((hop, n_dev), np.float32)
-            covered = [0] * n_dev
+            covered = np.zeros(n_dev, np.bool_)   # at least half the hop was received
             for d in range(n_dev):   # written in place: zeros where a device has no samples
                 start = k * hop + offsets[d]
                 part = self._held_part(d, start, start + hop)
                 if part is not None:
                     at, x = part
                     samples[at:at + len(x), d] = x
-                    covered[d] = min(start + hop, self._received[d]) - max(start, self._buf_start[d], 0)
-            rms = np.sqrt(np.einsum("ij,ij->j", samples, samples, dtype=np.float64) / hop)
-            valid = (self.aligned | self._is_reference) & (np.array(covered) >= hop // 2) & (rms >= SILENCE_RMS)
+                    covered[d] = min(start + hop, self._received[d]) - max(start, self._buf_start[d], 0) >= hop // 2
+            valid = _block_valid(samples, self.aligned, self._is_reference, covered, np.empty(n_dev, np.bool_))
             corrected = None
-            if self._corrected.any():
+            if self._any_corrected:
                 corrected, self._corrected = self._corrected, np.zeros(n_dev, bool)
+                self._any_corrected = False
             self.next_block += 1
             if self.next_block % _TRIM_EVERY_BLOCKS == 0:
                 self._trim()

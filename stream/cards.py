@@ -16,6 +16,7 @@ card's clock.
 from __future__ import annotations
 
 import logging
+import queue
 import re
 import threading
 import time
@@ -226,6 +227,29 @@ class CardDevice(DeviceInfo):
     n_overflows: int = 0
 
 
+class _Wake:
+    """Wakes the stream loop from the audio callbacks: ``set`` is one C-level queue put (``threading.Event.set``
+    runs a condition variable's Python code in the audio thread, every callback), and only when the loop has
+    not been woken already since it last waited."""
+
+    def __init__(self) -> None:
+        self._q: queue.SimpleQueue = queue.SimpleQueue()
+        self._pending = False
+
+    def set(self) -> None:
+        if not self._pending:
+            self._pending = True
+            self._q.put(None)
+
+    def wait(self, timeout_s: float) -> None:
+        """Until :meth:`set` or ``timeout_s``; everything stored before that ``set`` is then visible."""
+        try:
+            self._q.get(timeout=timeout_s)
+        except queue.Empty:
+            pass
+        self._pending = False
+
+
 class _Card:
     """One opened input card: its PortAudio stream, ring, and the devices that read from it."""
 
@@ -268,7 +292,8 @@ class CardSource:
     Usage: ``with CardSource(["USB", "ReSpeaker:1,2"]) as src: for frame in src: ...``; ``src.stop()``
     (from a signal handler or another thread) ends the iteration after the audio captured so far. The cards
     start recording when the iteration starts.
-    Frames carry ``samples`` of shape ``(n_samples, n_channels)`` (the spec's channels), the index of their
+    Frames carry ``samples`` of shape ``(n_samples, n_channels)`` (the spec's channels; ``(n_samples,)`` for a
+    spec of one channel, so that the stream's per-frame path does no mix-down), the index of their
     first sample in the card's clock, and ``FrameFlag.GAP`` when samples before them were lost.
     """
 
@@ -292,7 +317,7 @@ class CardSource:
         self.active: list[CardDevice] = []
         self._cards: list[_Card] = []
         self._stop = threading.Event()
-        self._wake = threading.Event()
+        self._wake = _Wake()
         self._sd = None
         self.t_start_s = 0.0
 
@@ -451,7 +476,6 @@ class CardSource:
                 if all(c.ended for c in self._cards):
                     return
                 self._wake.wait(0.05)
-                self._wake.clear()
 
     def _end(self, card: _Card, seq: list[int]) -> Iterator[Frame]:
         """The empty last frame of each device of ``card``."""
@@ -459,7 +483,8 @@ class CardSource:
             return
         card.ended = card.n_last_sent = True
         for j, d in enumerate(card.devices):
-            empty = np.zeros((0, len(card.columns[j])), np.float32)
+            cols = card.columns[j]
+            empty = np.zeros((0, len(cols)) if len(cols) > 1 else 0, np.float32)
             yield self._frame(card, d, seq, empty, card.n_consumed_clock, FrameFlag.LAST)
 
     def _frame(self, card: _Card, d: int, seq: list[int], x: np.ndarray, first: int, flags: FrameFlag) -> Frame:
@@ -499,7 +524,8 @@ class CardSource:
             first = card.n_consumed_clock
             # a gap is flagged on the frame after it: its first_sample jumps
             for j, d in enumerate(card.devices):
-                x = chunk[:, card.columns[j]]     # a copy (fancy indexing): the ring may be overwritten
+                cols = card.columns[j]   # a copy either way: the ring may be overwritten
+                x = chunk[:, cols[0]].copy() if len(cols) == 1 else chunk[:, cols]
                 yield self._frame(card, d, seq, x, first, flags)
             ring.n_read = r0 + n
             card.n_consumed_clock += n

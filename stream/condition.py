@@ -6,14 +6,30 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 import soxr
 
 from .messages import Frame, FrameFlag
 
 _LAST = int(FrameFlag.LAST)
+_F32 = np.dtype(np.float32)
 CLIP_LEVEL = 0.999          # |x| at or above this counts as clipped (full scale is 1.0)
 SILENCE_RMS = 1e-7          # a block quieter than this (about -140 dBFS) is digital silence
+
+
+@numba.njit(cache=True, nogil=True)
+def _frame_stats(x):
+    """One pass over a frame: the sum of its squares (float64, NaN or inf if any sample is not finite) and its
+    largest magnitude. Every frame of every device goes through it, so it is one compiled call."""
+    energy, peak = 0.0, 0.0
+    for v in x:
+        e = float(v)
+        energy += e * e
+        a = abs(e)
+        if a > peak:
+            peak = a
+    return energy, peak
 
 
 @dataclass
@@ -107,29 +123,30 @@ class DeviceConditioner:
         x = frame.samples
         flags = frame.flags
         c = self.counters
+        n = len(x)
         c.n_blocks += 1
-        c.n_samples += len(x)
-        energy = float(np.dot(x, x)) if len(x) else 0.0   # one BLAS call: finite iff every sample is
-        if not np.isfinite(energy):
-            finite = np.isfinite(x)
-            n_bad = int(len(x) - finite.sum())
-            if n_bad:
-                c.n_nan_samples += n_bad
-                x = np.where(finite, x, np.float32(0.0))
-                flags |= FrameFlag.NAN_REPLACED
-            energy = float(np.dot(x.astype(np.float64), x.astype(np.float64)))
-        if len(x):
-            # no sample can reach the clip level when the energy (their squares' sum) is below its square
-            if energy >= CLIP_LEVEL * CLIP_LEVEL and (x.max() >= CLIP_LEVEL or x.min() <= -CLIP_LEVEL):
+        c.n_samples += n
+        if n:
+            energy, peak = _frame_stats(x if x.ndim == 1 else x.ravel())
+            if not math.isfinite(energy):
+                finite = np.isfinite(x)
+                n_bad = int(n - finite.sum())
+                if n_bad:
+                    c.n_nan_samples += n_bad
+                    x = np.where(finite, x, np.float32(0.0))
+                    flags |= FrameFlag.NAN_REPLACED
+                energy = float(np.dot(x.astype(np.float64), x.astype(np.float64)))
+                peak = float(np.abs(x).max())
+            if peak >= CLIP_LEVEL:
                 c.n_clipped_samples += int(np.count_nonzero(np.abs(x) >= CLIP_LEVEL))
                 flags |= FrameFlag.CLIPPED
-            if np.sqrt(energy / len(x)) < SILENCE_RMS:
+            if math.sqrt(energy / n) < SILENCE_RMS:
                 c.n_silent_blocks += 1
                 flags |= FrameFlag.SILENT
         if self._resampler is not None:
             last = bool(int(flags) & _LAST)
             x = self._resampler.resample_chunk(np.ascontiguousarray(x, np.float32), last=last)
-        return np.asarray(x, np.float32), flags
+        return (x if x.dtype is _F32 else np.asarray(x, np.float32)), flags
 
 
 HISTORY_S = 0.25   # input kept per device to prime a resampler after a rate change

@@ -97,14 +97,15 @@ class History(list):
         self.n_appended = 0
 
     def append(self, value) -> None:   # noqa: D102 - list.append
-        if self.cap is None:
-            super().append(value)
-        elif self.cap > 0 and self.n_appended % self.stride == 0:
-            super().append(value)
-            if len(self) > self.cap:
+        n, cap = self.n_appended, self.cap
+        self.n_appended = n + 1
+        if cap is None:
+            list.append(self, value)
+        elif cap > 0 and n % self.stride == 0:
+            list.append(self, value)
+            if len(self) > cap:
                 del self[1::2]
                 self.stride *= 2
-        self.n_appended += 1
 
 
 class HopTimes:
@@ -518,7 +519,7 @@ class Pipeline:
         s, c = self.state, self.counters
         c.n_blocks += 1
         c.n_gated += int(toa.gated)
-        c.n_invalid_device_blocks += int((~block.valid).sum())
+        c.n_invalid_device_blocks += self.n_devices - int(np.count_nonzero(block.valid))
         s.time_s.append(toa.time_s)
         s.toa_s.append(toa.toa_s)
         s.gated.append(toa.gated)
