@@ -15,6 +15,7 @@ rate (``rate_ratio``) and the aligner its clock offset (:meth:`Pipeline.apply_ge
 from __future__ import annotations
 
 import collections
+import dataclasses
 import logging
 import time
 from dataclasses import dataclass
@@ -72,6 +73,61 @@ def make_estimator(config: EngineConfig, n_devices: int, device_names: Sequence[
     if config.estimator == "smoother":
         return estimators.FixedLagKalmanToa(n_devices, lag_frames=config.smoother_lag_frames, **kwargs)
     return estimators.KalmanToa(n_devices, **kwargs)
+
+
+class GivenToa:
+    """Steering by a known relative TOA instead of an estimate: row ``k`` of ``fine_toa_s`` (n_frames,
+    n_devices), seconds, at the ``k``-th frame (the last row once the table ends). A pipeline built with it
+    (``Pipeline(..., steering=GivenToa(...))``) runs no GCC-PHAT and is driven block by block
+    (:func:`steer_aligned`): scoring's true-TOA baselines go through the engine's own stages."""
+
+    latency_frames = 0
+    gated = False
+
+    def __init__(self, fine_toa_s: np.ndarray) -> None:
+        self._toa = np.atleast_2d(np.asarray(fine_toa_s, dtype=float))
+        self._k = 0
+
+    def update(self) -> np.ndarray:
+        row = self._toa[min(self._k, len(self._toa) - 1)]
+        self._k += 1
+        return row
+
+
+def steer_aligned(config: EngineConfig, samples: np.ndarray, fine_toa_s: np.ndarray, *, weighting: str,
+                  valid: np.ndarray | None = None) -> np.ndarray:
+    """Delay-and-sum of already aligned input through the pipeline's stages (STFT, beamformer, overlap-add
+    tail, latency), steered per hop by a given fine TOA.
+
+    Parameters
+    ----------
+    samples : ndarray, shape (n, n_devices)
+        Aligned input at ``config.working_rate_hz`` (a run's ``aligned_input``, or synchronous signals).
+    fine_toa_s : ndarray, shape (n_blocks, n_devices)
+        Relative TOA (seconds) to steer hop ``k`` by (the last row for hops beyond).
+    weighting : str
+        The beamformer's channel weighting (``config.weighting`` is replaced by it).
+    valid : ndarray, shape (n_blocks, n_devices), bool, optional
+        Devices usable per hop (default: all).
+
+    Returns
+    -------
+    ndarray, shape (n_blocks * hop,), float32
+        The output on the reference clock (latency removed), as :meth:`Pipeline.enhanced_signal`.
+    """
+    hop = config.hop_samples
+    fs = config.working_rate_hz
+    n_dev = samples.shape[1]
+    pipeline = Pipeline(dataclasses.replace(config, weighting=weighting), [fs] * n_dev,
+                        steering=GivenToa(fine_toa_s))
+    all_valid, no_offsets = np.ones(n_dev, bool), np.zeros(n_dev, np.int64)
+    for k in range(len(samples) // hop):
+        ok = all_valid if valid is None else np.asarray(valid[min(k, len(valid) - 1)], bool)
+        pipeline.process_block(Block(seq=k, first_sample=k * hop, sample_rate_hz=fs, valid=ok,
+                                     samples=np.ascontiguousarray(samples[k * hop:(k + 1) * hop], np.float32),
+                                     offsets_samples=no_offsets))
+    pipeline.finish()
+    return pipeline.enhanced_signal()
 
 
 @dataclass
@@ -188,7 +244,7 @@ class Pipeline:
     def __init__(self, config: EngineConfig, device_rates_hz: Iterable[float], *, keep_input: bool = False,
                  rate_ratios: Iterable[float] | None = None, calibrator: StreamCalibrator | None = None,
                  device_names: Sequence[str] = (), speech=None, history_cap: int | None = None,
-                 clock_groups: Sequence[int] | None = None) -> None:
+                 clock_groups: Sequence[int] | None = None, steering: GivenToa | None = None) -> None:
         self.config = config
         rates = list(device_rates_hz)
         self.n_devices = len(rates)
@@ -215,7 +271,10 @@ class Pipeline:
         self.estimator = None
         self.tracker: estimators.SourceTracker | None = None
         self.speech = None
-        if self.n_devices >= 2 and config.estimator == "tracks":
+        self._steering = steering
+        if steering is not None:   # a given TOA (scoring): no estimate, no GCC; driven by process_block
+            self.estimator = steering
+        elif self.n_devices >= 2 and config.estimator == "tracks":
             self.gcc = estimators.NoiseAwareGcc(
                 self.n_devices, n_fft=config.frame_samples, sample_rate_hz=fs, hop_s=config.hop_samples / fs,
                 max_tdoa_s=config.max_tdoa_s, n_peaks=config.n_peaks, weighting=config.gcc_weighting,
@@ -267,8 +326,9 @@ class Pipeline:
         beamform.DelayAndSum(m, frame_samples=cfg.frame_samples, hop_samples=cfg.hop_samples,
                              sample_rate_hz=cfg.working_rate_hz, weighting=cfg.weighting
                              ).process_spectra(spectra, np.zeros(m), valid=np.ones(m, bool))
-        if m >= 2 and self.tracker is None:   # the estimator's kernels (the tracker's Kalman tracks compile
-            estimator = make_estimator(cfg, m)  # on their first update: the same kernel)
+        if m >= 2 and self.tracker is None and self._steering is None:
+            # the estimator's kernels (the tracker's Kalman tracks compile on their first update: the same kernel)
+            estimator = make_estimator(cfg, m)
             n_pairs = m * (m - 1) // 2
             for _ in range(3):   # initialise, then update
                 estimator.update(np.zeros(n_pairs), np.ones(n_pairs))
@@ -311,8 +371,8 @@ class Pipeline:
     def finish(self) -> list[HopResult]:
         """Flush: release the last blocks and the beamformer's tail; then a last calibration solve (bounded
         wait: the audio is done). Returns the hops produced, in order."""
-        for block in self.aligner.finish():
-            self.process_block(block)
+        for block in (self.aligner.finish() if self._steering is None else ()):   # a steered pipeline is fed
+            self.process_block(block)                                               # blocks, not frames
         while self._delayed:   # the last `lag` frames: steered by the newest estimate (none will come)
             spectra, block, time_s, tdoa, valid = self._delayed.popleft()
             self._steer(spectra, block, time_s, tdoa, valid, self._fine_toa_s, False, -1, float("nan"))
@@ -398,7 +458,8 @@ class Pipeline:
             gated = bool(self.estimator.gated)
         else:
             tdoa = TdoaFrame(block.seq, time_s, np.zeros(0), np.zeros(0))
-            fine, gated = np.zeros(1), False
+            fine = self._steering.update() if self._steering is not None else np.zeros(1)
+            gated = False
         self._fine_toa_s = fine
         if self._lag:   # the estimate is `lag` frames old: steer the spectra of that frame with it
             self._delayed.append((spectra.copy(), block, time_s, tdoa, valid.copy()))
@@ -539,7 +600,7 @@ class Pipeline:
         search edge (median over the last ``RECENTRE_FRAMES`` frames) by that median. Not during the first
         ``align_window_s`` of the stream: the estimators are starting up (a young track may still slide from a
         wrong peak to the talker), and the coarse alignment was just measured on that very audio."""
-        if block.first_sample < self.aligner.window_samples:
+        if block.first_sample < self.aligner.window_samples or self._steering is not None:
             return
         self._recent.append(fine_toa_s)
         limit = 0.5 * self.config.max_tdoa_s

@@ -1,5 +1,6 @@
 """Scores a run against a fixture's ground truth: TOA error (eq. 18), enhancement (SI-SDR, STOI,
-SAR, SSARA eqs. 19-21), the best single device, and delay-and-sum steered by the true TOA."""
+SAR, SSARA eqs. 19-21), the best single device, and delay-and-sum steered by the true TOA (the pipeline's
+own stages, driven by :func:`stream.pipeline.steer_aligned`)."""
 from __future__ import annotations
 
 import dataclasses
@@ -8,38 +9,14 @@ from typing import Any
 
 import numpy as np
 
-import beamform
-
 from . import metrics
 from ..config import EngineConfig
 from .fixture import Fixture
-from ..pipeline import Pipeline, make_estimator
+from ..pipeline import Pipeline, make_estimator, steer_aligned
 
 log = logging.getLogger(__name__)
 
 ALIGN_MAX_LAG_S = 0.05   # the reference is aligned to the output within ±50 ms before scoring
-
-
-def beamform_offline(samples: np.ndarray, fine_toa_s: np.ndarray, *, config: EngineConfig, weighting: str,
-                     valid: np.ndarray | None = None) -> np.ndarray:
-    """Delay-and-sum of aligned input ``(n, M)`` steered per hop by ``fine_toa_s`` ``(n_blocks, M)``.
-
-    Returns the output on the reference clock (latency removed), length ``n``.
-    """
-    hop = config.hop_samples
-    n_dev = samples.shape[1]
-    das = beamform.DelayAndSum(n_dev, frame_samples=config.frame_samples, hop_samples=hop,
-                               sample_rate_hz=config.working_rate_hz, weighting=weighting)
-    n_blocks = len(samples) // hop
-    tail = -(-das.latency_samples // hop)
-    out = []
-    for k in range(n_blocks + tail):
-        block = samples[k * hop:(k + 1) * hop] if k < n_blocks else np.zeros((hop, n_dev), np.float32)
-        toa = fine_toa_s[min(k, len(fine_toa_s) - 1)]
-        ok = None if valid is None else valid[min(k, len(valid) - 1)]
-        out.append(das.process(block, toa, valid=ok) if ok is not None else das.process(block, toa))
-    y = np.concatenate(out)
-    return y[das.latency_samples:das.latency_samples + n_blocks * hop]
 
 
 def enhancement_scores(estimate: np.ndarray, reference: np.ndarray, *, sample_rate_hz: float,
@@ -140,7 +117,7 @@ def evaluate_run(pipeline: Pipeline, fixture: Fixture, device_index: list[int]) 
             fine_est = toa_s - offsets / fs if offsets is not None else toa_s
             other = "adaptive" if cfg.weighting == "equal" else "equal"
             scores[f"estimated_toa_{other}_weights"] = enhancement_scores(
-                beamform_offline(x, fine_est, config=cfg, weighting=other, valid=valid), clean, sample_rate_hz=fs,
+                steer_aligned(cfg, x, fine_est, weighting=other, valid=valid), clean, sample_rate_hz=fs,
                 sar=False)
             if fixture.truth_toa is not None and offsets is not None:
                 centre = (np.arange(len(x) // cfg.hop_samples) * cfg.hop_samples + cfg.hop_samples
@@ -150,7 +127,7 @@ def evaluate_run(pipeline: Pipeline, fixture: Fixture, device_index: list[int]) 
                 fine_true = truth - offsets[: len(truth)] / fs
                 for weighting in ("equal", "adaptive"):
                     scores[f"true_toa_async_{weighting}"] = enhancement_scores(
-                        beamform_offline(x, fine_true, config=cfg, weighting=weighting, valid=valid), clean,
+                        steer_aligned(cfg, x, fine_true, weighting=weighting, valid=valid), clean,
                         sample_rate_hz=fs, sar=False)
         if fixture.truth_sync is not None:
             sync, sync_rate = fixture.load_sync()
@@ -164,7 +141,7 @@ def evaluate_run(pipeline: Pipeline, fixture: Fixture, device_index: list[int]) 
                 toa_true -= toa_true[:, :1]
                 for weighting in ("equal", "adaptive"):
                     scores[f"true_toa_sync_{weighting}"] = enhancement_scores(
-                        beamform_offline(sync.astype(np.float32), toa_true, config=cfg, weighting=weighting),
+                        steer_aligned(cfg, sync.astype(np.float32), toa_true, weighting=weighting),
                         clean_sync, sample_rate_hz=fs)
         result["enhancement"] = scores
     return result
