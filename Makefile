@@ -17,7 +17,7 @@ $(STAMP): pyproject.toml tools/setup_system.sh
 setup: $(STAMP)
 
 demo: setup
-	$(VENV)/bin/adhoc-array replay $(FIXTURE) --out $(OUT) --estimator kalman
+	$(VENV)/bin/adhoc-array replay $(FIXTURE) --out $(OUT)
 
 test: setup
 	$(PY) -m pytest -q tests

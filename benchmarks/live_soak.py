@@ -2,7 +2,8 @@
 
 ``adhoc-array live`` runs in its own process (as a user runs it), 8 devices on the server's 8 capture
 channels, playing the enhanced stream on the server's output; a patch-bay client in this process plays a
-looping 8-device speech-like scene (``throughput.py``'s) into its inputs for the whole run. Figures from the
+looping 8-device recording into its inputs for the whole run: the ``async_8dev`` fixture's synchronous signals
+(real speech in a room at 8 devices) resampled to the run's rate. Figures from the
 run's report.json:
 
 - overflows (PortAudio's input-overflow flags), gaps (samples lost in our rings), output underflows;
@@ -35,11 +36,22 @@ import time
 import numpy as np
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
-from throughput import scene  # noqa: E402
 
 from stream.jack_dummy import PatchBay, jack_dummy_server  # noqa: E402
 
 N_DEV = 8
+FIXTURE = pathlib.Path(__file__).resolve().parent.parent / "replay_fixtures" / "async_8dev"
+
+
+def fixture_audio(rate: int) -> np.ndarray:
+    """The fixture's synchronous signals (its 8 devices on one clock: the server's channels share one, and the
+    engine's offsets come from the stream) at ``rate``: (n_samples, 8) float32. Real speech in a room, so that the
+    default tracker runs as it does on a talker (a synthetic scene has no speech for it)."""
+    import soundfile as sf
+    import soxr
+
+    x, fs = sf.read(FIXTURE / "truth" / "sync.flac", dtype="float32", always_2d=True)
+    return np.ascontiguousarray(soxr.resample(x[:, :N_DEV], fs, rate), np.float32)
 
 BARE = r"""
 import sys, time, numpy as np, sounddevice as sd
@@ -68,7 +80,7 @@ def _looping_player(bay: PatchBay, audio: np.ndarray, client: str, stop: threadi
 
 
 def run(name: str, rate: int, frame: int, hop: int, period: int, seconds: float) -> dict:
-    audio, _ = scene(N_DEV, rate, 30.0, 11)
+    audio = fixture_audio(rate)
     with jack_dummy_server(sample_rate_hz=rate, period_samples=period, n_channels=N_DEV) as server:
         env = dict(os.environ, JACK_DEFAULT_SERVER=server.name)
         bay = PatchBay(server, n_outputs=N_DEV, n_inputs=1, record_s=1.0)

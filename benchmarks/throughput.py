@@ -171,7 +171,7 @@ class HopPath:
 
     def __init__(self, cfg: PathConfig) -> None:
         extra = {} if cfg.max_tdoa_s is None else {"max_tdoa_s": cfg.max_tdoa_s}
-        engine = EngineConfig(working_rate_hz=cfg.sample_rate_hz, frame_samples=cfg.frame_samples,
+        engine = EngineConfig(working_rate_hz=cfg.sample_rate_hz, frame_samples=cfg.frame_samples, estimator="kalman",
                               hop_samples=cfg.hop_samples, weighting=cfg.weighting, **extra).resolved(cfg.sample_rate_hz)
         m, fs = cfg.n_devices, cfg.sample_rate_hz
         self.stft = beamform.StreamingStft(m, frame_samples=cfg.frame_samples, hop_samples=cfg.hop_samples)
@@ -498,9 +498,10 @@ def bench_engine(repeats: int, audio_s: float, profile: bool) -> dict:
 
     logging.getLogger().setLevel(logging.ERROR)
     m, fs, frame, hop = CPU_CONFIG
-    # adaptive weighting as in the bare path (the engine's default may differ)
+    # the bare path's stages: the Kalman TOA (the default is the tracker since 2026-11-26: bench_engine_tracks),
+    # adaptive weighting
     config = EngineConfig(working_rate_hz=fs, frame_samples=frame, hop_samples=hop, weighting="adaptive",
-                          plots=False, progress=False)
+                          estimator="kalman", plots=False, progress=False)
     fractions, wall, block_ms, in_blocks = [], [], [], []
     with tempfile.TemporaryDirectory(prefix="throughput_") as tmp:
         tmp = pathlib.Path(tmp)

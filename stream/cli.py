@@ -18,8 +18,9 @@ from .errors import AdhocArrayError, ConfigError
 def _add_engine_options(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("engine options (also accepted in a --config TOML file, same names)")
     g.add_argument("--estimator", choices=["tracks", "subset", "pinv", "kalman", "smoother"],
-                   help="relative-TOA estimator (default: kalman = the TOA paper's single track; tracks = several "
-                        "sources with speech presence, steered at the talker: for rooms with a noise source)")
+                   help="relative-TOA estimator (default: tracks = several sources with speech presence, steered at "
+                        "the talker, never at a noise source; kalman = the TOA paper's single track, which follows "
+                        "whatever is loudest, a third of the CPU)")
     g.add_argument("--target", help="whom to steer at with --estimator tracks: 'active-talker' (default) or "
                                     "'nearest DEVICE' (the talker closest to a device, by name or index)")
     g.add_argument("--vad", help="speech-presence detector: auto (default: Silero, else WebRTC, else energy), "

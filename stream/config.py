@@ -3,7 +3,7 @@ file and command-line flags (in that order of precedence, the last wins).
 
 A TOML config uses the same names as the long CLI flags, with underscores::
 
-    estimator = "kalman"
+    estimator = "tracks"
     frame_samples = 512
     hop_samples = 128
     working_rate_hz = 16000
@@ -46,7 +46,7 @@ class EngineConfig:
     smallest usable GCC-PHAT peak ``5 / sqrt(frame_samples)``.
     """
 
-    estimator: Estimator = "kalman"
+    estimator: Estimator = "tracks"
     working_rate_hz: float | None = None
     frame_samples: int | None = None
     hop_samples: int | None = None

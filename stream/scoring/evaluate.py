@@ -76,7 +76,8 @@ def evaluate_run(pipeline: Pipeline, fixture: Fixture, device_index: list[int]) 
         toa_report = {}
         tdoa = np.vstack(s.tdoa_s) if s.tdoa_s and len(s.tdoa_s[0]) else None
         conf = np.vstack(s.confidence) if tdoa is not None else None
-        for name in ("subset", "pinv", "kalman", "smoother"):
+        # the run's own estimator first (the tracker's steered TOA included), then the paper's, re-run offline
+        for name in dict.fromkeys((cfg.estimator, "subset", "pinv", "kalman", "smoother")):
             if name == cfg.estimator:
                 est = toa_s
             elif tdoa is not None and offsets is not None:
