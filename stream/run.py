@@ -441,7 +441,8 @@ def _finalise(report, out, cfg, pipeline, layout, fixture, names, collector, t_w
                                           if pipeline.state.speech_probability else 0.0}
             note = None
             if sources["n_speech_frames"] == 0:
-                note = f"No speech was detected in the whole stream; {NO_TALKER_OUTPUT}"
+                note = (f"No speech was detected in the whole stream; {NO_TALKER_OUTPUT[:-1]} (for a source that "
+                        "is not speech, --estimator kalman steers at whatever is loudest).")
             elif not any(t["kind"] == "speech" for t in sources["tracks"]):
                 note = f"Speech was detected but no talker could be tracked; {NO_TALKER_OUTPUT}"
             if note is not None:   # the run's log collector is already detached here
