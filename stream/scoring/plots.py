@@ -211,7 +211,7 @@ def plot_source_tracks(
     steered_id: np.ndarray,
     truth: dict | None = None,
     device_names: Sequence[str] | None = None,
-    max_devices: int = 4,
+    max_devices: int = 8,
     title: str | None = None,
 ) -> Path:
     """Every tracked source over time, the steered one highlighted (the multi-source tracker).
@@ -269,6 +269,7 @@ def plot_source_tracks(
     axes[0, 0].plot([], [], "-", color="k", lw=2.6, alpha=0.55, label="steered")
     axes[0, 0].legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8)
     axes[-1, 0].set_xlabel("time (s)")
-    fig.suptitle(title or "Tracked sources: relative TOA, steered track thick")
+    shown = f" (devices 1-{n_panels} of {m - 1})" if n_panels < m - 1 else ""
+    fig.suptitle((title or "Tracked sources: relative TOA, steered track thick") + shown)
     fig.subplots_adjust(right=0.76, hspace=0.15)
     return _save(fig, path)
