@@ -12,11 +12,10 @@ from __future__ import annotations
 
 import concurrent.futures
 import logging
+import math
 import time
 from typing import Iterator, Sequence
 from dataclasses import dataclass
-
-import math
 
 import numba
 import numpy as np

@@ -239,6 +239,9 @@ class Pipeline:
     clock_groups : sequence of int, optional
         The first device of each device's clock group: the mics of one array (:mod:`stream.channels`) share
         one coarse offset (:class:`~stream.align.Aligner`). Default: every device its own clock.
+    steering : GivenToa, optional
+        Steer by a given TOA table instead of an estimate (no GCC-PHAT, no re-centring); the pipeline is then
+        fed aligned blocks (:meth:`process_block`, then :meth:`finish`), not device frames: :func:`steer_aligned`.
     """
 
     def __init__(self, config: EngineConfig, device_rates_hz: Iterable[float], *, keep_input: bool = False,
@@ -272,9 +275,8 @@ class Pipeline:
         self.tracker: estimators.SourceTracker | None = None
         self.speech = None
         self._steering = steering
-        if steering is not None:   # a given TOA (scoring): no estimate, no GCC; driven by process_block
-            self.estimator = steering
-        elif self.n_devices >= 2 and config.estimator == "tracks":
+        estimated = self.n_devices >= 2 and steering is None   # a given TOA (scoring): no estimator, no GCC
+        if estimated and config.estimator == "tracks":
             self.gcc = estimators.NoiseAwareGcc(
                 self.n_devices, n_fft=config.frame_samples, sample_rate_hz=fs, hop_s=config.hop_samples / fs,
                 max_tdoa_s=config.max_tdoa_s, n_peaks=config.n_peaks, weighting=config.gcc_weighting,
@@ -286,7 +288,7 @@ class Pipeline:
                 speech = make_speech_presence(self.n_devices, sample_rate_hz=fs, hop_samples=config.hop_samples,
                                               backend=config.vad)
             self.speech = speech
-        elif self.n_devices >= 2:
+        elif estimated:
             self.gcc = estimators.GccPhat(self.n_devices, n_fft=config.frame_samples, sample_rate_hz=fs,
                                           max_tdoa_s=config.max_tdoa_s)
             self.estimator = make_estimator(config, self.n_devices)
