@@ -2,8 +2,10 @@
 
 Devices are first aligned to the reference (device 0) to within a few samples by cross-correlating
 their energy envelopes (as the TOA paper did for its smartphones), then refined by a PHAT-weighted
-cross-correlation of the waveforms around the envelope lag. The remaining (fine) relative TOA is
-left to the frame-based GCC-PHAT and the TOA estimator. Offsets are re-checked while streaming.
+cross-correlation of the waveforms around the envelope lag (:mod:`stream.offsets`). The remaining (fine)
+relative TOA is left to the frame-based GCC-PHAT and the TOA estimator. Offsets are re-checked while
+streaming, in a child process (:class:`stream.offsets.OffsetWorker`) so that the correlation does not share
+the GIL with the stream loop.
 
 Convention: ``offsets_samples[i] = o`` means device ``i``'s sample ``n + o`` (at the working rate)
 lines up with the reference's sample ``n``; ``o / working_rate_hz`` is the coarse relative TOA.
@@ -19,119 +21,11 @@ from dataclasses import dataclass
 
 import numba
 import numpy as np
-import scipy.fft
-import scipy.signal
 
-from .condition import SILENCE_RMS
 from .messages import Block, FrameFlag
+from .offsets import SILENCE_RMS, coarse_offset, worker
 
 log = logging.getLogger(__name__)
-
-
-def energy_envelope(x: np.ndarray, *, sample_rate_hz: float, hop_s: float = 0.01) -> np.ndarray:
-    """Log-energy envelope of a signal, zero mean and unit variance.
-
-    Parameters
-    ----------
-    x : ndarray, shape (n_samples,), float
-    sample_rate_hz : float
-    hop_s : float
-        Envelope resolution in seconds.
-
-    Returns
-    -------
-    ndarray, shape (n_samples // hop,), float64
-    """
-    hop = max(1, int(round(hop_s * sample_rate_hz)))
-    n = len(x) // hop
-    if n == 0:
-        return np.zeros(0)
-    e = np.log10(np.mean(np.square(x[: n * hop].reshape(n, hop), dtype=np.float64), axis=1) + 1e-12)
-    # the floor is taken over the frames that hold sound: digital silence (a card started before the room made
-    # a sound, a stream's end) would pull it down, and its step to the first sound would then out-correlate
-    # the sound itself
-    sound = e > np.log10(SILENCE_RMS ** 2 + 1e-12) + 0.5
-    floor = np.percentile(e[sound] if sound.any() else e, 10) + 0.6
-    e = np.maximum(e, floor)  # ignore the noise floor (and 6 dB above it): only what rises above it aligns
-    e -= e.mean()
-    std = e.std()
-    return e / std if std > 0 else e
-
-
-def normalised_xcorr(e: np.ndarray, e_ref: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Pearson correlation of ``e[n + lag]`` with ``e_ref[n]`` over their overlap, for every lag.
-
-    Returns
-    -------
-    (score, lags) : ndarray, shape (len(e) + len(e_ref) - 1,)
-    """
-    n_e, n_r = len(e), len(e_ref)
-    s_xy = scipy.signal.correlate(e, e_ref, mode="full", method="fft")
-    lags = scipy.signal.correlation_lags(n_e, n_r, mode="full")
-    lo_r = np.maximum(0, -lags)                 # overlap in e_ref: [lo_r, hi_r)
-    hi_r = np.minimum(n_r, n_e - lags)
-    n = np.clip(hi_r - lo_r, 1, None).astype(float)
-    c_r, c_r2 = np.r_[0, np.cumsum(e_ref)], np.r_[0, np.cumsum(e_ref ** 2)]
-    c_e, c_e2 = np.r_[0, np.cumsum(e)], np.r_[0, np.cumsum(e ** 2)]
-    s_r, s_r2 = c_r[hi_r] - c_r[lo_r], c_r2[hi_r] - c_r2[lo_r]
-    s_e, s_e2 = c_e[hi_r + lags] - c_e[lo_r + lags], c_e2[hi_r + lags] - c_e2[lo_r + lags]
-    cov = s_xy - s_e * s_r / n
-    var = np.clip(s_e2 - s_e ** 2 / n, 0, None) * np.clip(s_r2 - s_r ** 2 / n, 0, None)
-    score = np.where(var > 1e-12, cov / np.sqrt(np.maximum(var, 1e-300)), 0.0)
-    return score, lags
-
-
-def coarse_offset(x_ref: np.ndarray, x: np.ndarray, *, sample_rate_hz: float, max_offset_s: float,
-                  envelope_hop_s: float = 0.01, refine_s: float = 0.05) -> tuple[int, float]:
-    """Offset of ``x`` relative to ``x_ref`` in samples, and a quality in [0, 1].
-
-    ``x[n + offset]`` lines up with ``x_ref[n]``. The quality is the normalised envelope correlation
-    at the chosen lag (about 0 for unrelated signals, up to 1).
-    """
-    hop = max(1, int(round(envelope_hop_s * sample_rate_hz)))
-    e_ref = energy_envelope(x_ref, sample_rate_hz=sample_rate_hz, hop_s=envelope_hop_s)
-    e = energy_envelope(x, sample_rate_hz=sample_rate_hz, hop_s=envelope_hop_s)
-    if len(e_ref) < 4 or len(e) < 4 or not e_ref.any() or not e.any():
-        return 0, 0.0
-    score, lags = normalised_xcorr(e, e_ref)
-    max_lag = int(max_offset_s / envelope_hop_s)
-    overlap = np.minimum(len(e_ref), len(e) - lags) - np.maximum(0, -lags)
-    min_overlap = max(4, int(0.25 * min(len(e), len(e_ref))))
-    ok = (np.abs(lags) <= max_lag) & (overlap >= min_overlap)
-    if not ok.any():
-        return 0, 0.0
-    # rank by correlation times the square root of the overlap share (full weight from FULL_OVERLAP_SHARE on),
-    # so that a short overlap that happens to correlate does not beat the long one of the true offset, while
-    # among long overlaps the best correlation wins (a repeated sentence correlates at the repetition's lag too)
-    share = np.minimum(overlap / (FULL_OVERLAP_SHARE * min(len(e), len(e_ref))), 1.0)
-    rank = np.where(ok, score * np.sqrt(share), -np.inf)
-    k = int(np.argmax(rank))
-    quality = float(np.clip(score[k], 0.0, 1.0))
-    coarse = int(lags[k]) * hop
-    # refine at sample resolution: PHAT cross-correlation of the waveforms around the envelope lag
-    fine = refine_offset(x_ref, x, coarse_samples=coarse, search_samples=int(refine_s * sample_rate_hz))
-    return fine, quality
-
-
-def refine_offset(x_ref: np.ndarray, x: np.ndarray, *, coarse_samples: int, search_samples: int) -> int:
-    """Sample-accurate offset near ``coarse_samples`` by PHAT-weighted cross-correlation."""
-    start_ref = max(0, -coarse_samples)
-    start = start_ref + coarse_samples
-    n = min(len(x_ref) - start_ref, len(x) - start)
-    if n <= 2 * search_samples:
-        return coarse_samples
-    a = x_ref[start_ref:start_ref + n].astype(np.float32)
-    b = x[start:start + n].astype(np.float32)
-    n_fft = scipy.fft.next_fast_len(n + search_samples)
-    A = scipy.fft.rfft(a, n_fft)
-    B = scipy.fft.rfft(b, n_fft)
-    G = B * np.conj(A)
-    G /= np.abs(G) + 1e-12
-    r = scipy.fft.irfft(G, n_fft)
-    lags = np.r_[np.arange(0, search_samples + 1), np.arange(-search_samples, 0)]
-    vals = np.r_[r[: search_samples + 1], r[n_fft - search_samples:]]
-    # if x[n + coarse + d] = x_ref[n] then b[m + d] = a[m]: the correlation peaks at lag d
-    return coarse_samples + int(lags[int(np.argmax(vals))])
 
 
 _EXECUTOR: concurrent.futures.ThreadPoolExecutor | None = None
@@ -144,30 +38,12 @@ def _executor() -> concurrent.futures.ThreadPoolExecutor:
     return _EXECUTOR
 
 
-def _recheck_offsets(ref: np.ndarray, segments: dict[int, np.ndarray], *, sample_rate_hz: float,
-                     max_offset_s: float) -> dict[int, tuple[int, float]]:
-    """``{device: (offset change in samples, quality)}`` of each segment against the reference's."""
-    return {d: coarse_offset(ref, x, sample_rate_hz=sample_rate_hz, max_offset_s=max_offset_s)
-            for d, x in segments.items()}
-
-
 _LAST = int(FrameFlag.LAST)
 _NEW_CLOCK = int(FrameFlag.NEW_CLOCK)
 _GAP = int(FrameFlag.GAP)
-FULL_OVERLAP_SHARE = 0.75        # an envelope overlap this long (of the shorter window) counts in full
 RECHECK_MIN_QUALITY = 0.5        # envelope correlation a re-check needs to move an aligned device
 _TRIM_EVERY_BLOCKS = 8           # the buffers' fronts are dropped every few blocks (amortised)
 RECHECK_MAX_SILENT_SHARE = 0.1   # a re-check skips windows with more digital silence than this (stream ends)
-
-
-def _silent_share(x: np.ndarray, sample_rate_hz: float) -> float:
-    """Share of the 10 ms frames of ``x`` that are digital silence (RMS below ``SILENCE_RMS``)."""
-    hop = max(1, int(0.01 * sample_rate_hz))
-    n = len(x) // hop
-    if n == 0:
-        return 1.0
-    ms = np.mean(np.square(x[:n * hop].reshape(n, hop), dtype=np.float64), axis=1)
-    return float(np.mean(ms < SILENCE_RMS ** 2))
 
 
 @numba.njit(cache=True, nogil=True)
@@ -186,10 +62,14 @@ def _block_valid(samples, aligned, is_reference, covered, out):
 
 
 class _SampleBuffer:
-    """Growable float32 buffer: amortised O(1) appends, occasional compaction of the front."""
+    """Growable float32 buffer: amortised O(1) appends, occasional compaction of the front.
 
-    def __init__(self) -> None:
-        self._data = np.zeros(4096, np.float32)
+    ``capacity``: what the stream holds at most, allocated at once (untouched pages cost no memory until
+    written): growing copies the whole buffer into new pages, several ms per device at 48 kHz, once in the
+    stream's first seconds, where it made one hop late."""
+
+    def __init__(self, capacity: int = 4096) -> None:
+        self._data = np.zeros(max(int(capacity), 1), np.float32)
         self._n = 0
 
     @property
@@ -254,8 +134,8 @@ class Aligner:
         time. A replay as fast as possible is never late (any split of the input gives the same blocks). None:
         wait for every device (a stalled device then stalls the stream).
     recheck_delay_s : float
-        A re-check runs in a worker thread (a long correlation must not stall the audio path) and its result
-        is applied this many seconds of stream later, waiting for it only if it is not done by then: live,
+        A re-check runs in a child process (a long correlation must not stall the audio path; a thread
+        waits for it) and its result is applied this many seconds of stream later, waiting for it only if it is not done by then: live,
         paced and as-fast-as-possible streams give the same output.
     clock_groups : sequence of int, optional
         ``clock_groups[d]``: the first device of ``d``'s clock group (the mics of one synchronous array,
@@ -288,7 +168,11 @@ class Aligner:
         self.recheck_blocks = None if not recheck_s else max(1, int(recheck_s * sample_rate_hz / hop_samples))
         self.recheck_tolerance_samples = int(recheck_tolerance_s * sample_rate_hz)
         self.recheck_delay_blocks = max(1, int(recheck_delay_s * sample_rate_hz / hop_samples))
+        if self.recheck_blocks:
+            worker().start()   # it imports while the stream starts: ready by the first re-check
         self._pending: tuple | None = None
+        self._snapshots = (np.full((n_devices, self.window_samples), 0.0, np.float32)   # the re-check's copies
+                           if self.recheck_blocks else None)
         self._waiting_for: int | None = None   # the device the next block waits for (see push)
         self.deadline_s = deadline_s
         self._last_data_s = [time.monotonic()] * n_devices
@@ -298,7 +182,11 @@ class Aligner:
         self._any_corrected = False
         self._new_clock_pending: set[int] = set()
         self._ref_start: int | None = None     # reference sample of its first frame that is not a gap
-        self._bufs = [_SampleBuffer() for _ in range(n_devices)]
+        # held at most: the first alignment's window and search, then the kept window and up to 4 more before
+        # _trim drops them (every _TRIM_EVERY_BLOCKS blocks), and a device's lead of up to max_offset_s
+        keep = self.window_samples + self.hop_samples
+        capacity = 5 * keep + 2 * int(max_offset_s * sample_rate_hz) + 2 * _TRIM_EVERY_BLOCKS * self.hop_samples
+        self._bufs = [_SampleBuffer(capacity) for _ in range(n_devices)]
         self._buf_start = [0] * n_devices     # device sample index of _bufs[d][0]
         self._received = [0] * n_devices
         self._ended = [False] * n_devices
@@ -415,20 +303,25 @@ class Aligner:
         the result is applied ``recheck_delay_blocks`` later (:meth:`_apply_recheck`)."""
         ref_end = self.next_block * self.hop_samples
         ref_start = max(0, ref_end - self.window_samples)
-        ref = self._slice(0, ref_start, ref_end)
-        if ref is None or _silent_share(ref, self.sample_rate_hz) > RECHECK_MAX_SILENT_SHARE:
+        # copied into arrays kept from one re-check to the next (the worker is done with them before the next
+        # is submitted), written once when the aligner was made: fresh arrays cost page faults, 2-3 ms per
+        # device at 48 kHz on this VM
+        n = ref_end - ref_start
+        ref = self._slice(0, ref_start, ref_end, self._snapshots[0, :n])
+        if ref is None:
             return
         segments = {}
         for d in range(1, self.n_devices):
             if self.clock_groups[d] != d:
                 continue
             o = int(self.offsets_samples[d])
-            x = self._slice(d, ref_start + o, ref_end + o)
-            if x is not None and _silent_share(x, self.sample_rate_hz) <= RECHECK_MAX_SILENT_SHARE:
+            x = self._slice(d, ref_start + o, ref_end + o, self._snapshots[d, :n])
+            if x is not None:
                 segments[d] = x
         max_offset_s = min(self.max_offset_s, 0.5 * len(ref) / self.sample_rate_hz)
-        future = _executor().submit(_recheck_offsets, ref, segments, sample_rate_hz=self.sample_rate_hz,
-                                    max_offset_s=max_offset_s)
+        # the worker skips windows of digital silence (its check, too, costs ms per device at 48 kHz)
+        future = _executor().submit(worker().compute, ref, segments, sample_rate_hz=self.sample_rate_hz,
+                                    max_offset_s=max_offset_s, max_silent_share=RECHECK_MAX_SILENT_SHARE)
         self._pending = (self.next_block + self.recheck_delay_blocks, self.offsets_samples.copy(), future)
 
     def _apply_recheck(self) -> None:
@@ -483,12 +376,17 @@ class Aligner:
         lo, hi = max(start, b0), min(stop, b0 + len(buf))
         return None if hi <= lo else (lo - start, buf[lo - b0:hi - b0])
 
-    def _slice(self, d: int, start: int, stop: int) -> np.ndarray | None:
-        """Device samples [start, stop) (zeros outside what was received), None if none is there."""
+    def _slice(self, d: int, start: int, stop: int, out: np.ndarray | None = None) -> np.ndarray | None:
+        """Device samples [start, stop) (zeros outside what was received; written into ``out`` if given), None if
+        none is there."""
         part = self._held_part(d, start, stop)
         if part is None:
             return None
-        out = np.zeros(stop - start, np.float32)
+        if out is None:
+            out = np.zeros(stop - start, np.float32)
+        else:
+            out[:part[0]] = 0.0
+            out[part[0] + len(part[1]):] = 0.0
         out[part[0]:part[0] + len(part[1])] = part[1]
         return out
 

@@ -185,17 +185,25 @@ class _OutputRing:
         self.n_port_underflows = 0   # PortAudio's output-underflow flags
         self.n_callbacks = 0
         self.draining = False        # the stream has ended: running dry is no longer an underflow
-        self.prime_samples = 1       # queued before playing starts (and again after running dry)
+        self.margin_samples = 0      # the margin asked for (CardPlayback's queue_s)
+        self.prime_samples = 0       # the margin used: whole callbacks of the card
+        self.block = 0               # samples the card takes per callback (its period), once it has called
         self.priming = True
 
     def take(self, out: np.ndarray, n: int) -> None:
-        """Called in the audio thread: fill ``out[:n]`` (every channel) from the ring, zeros if short. After
-        running dry it waits (zeros) until ``prime_samples`` are queued again, so one late hop costs one gap
-        and not a gap per callback."""
+        """Called in the audio thread: fill ``out[:n]`` (every channel) from the ring, zeros if short.
+
+        Playing starts (and starts again after running dry, so that one late hop costs one gap and not a gap
+        per callback) once this callback's ``n`` samples and the margin are queued, so that the margin is
+        still there after the callback. The margin is whole callbacks: the card takes ``n`` samples at a time,
+        so a margin of less than ``n`` would only add latency (a late hop finds too little either way)."""
+        if n != self.block:
+            self.block = n
+            self.prime_samples = self.margin_samples // n * n
         r = self.n_read
         avail = self.n_written - r
         if self.priming:
-            if avail < self.prime_samples:
+            if avail < n + self.prime_samples and not self.draining:
                 out[:n] = 0.0
                 return
             self.priming = False
@@ -581,7 +589,9 @@ class CardPlayback:
         PortAudio block size (0: the host's choice).
     queue_s : float
         Audio queued before playing, seconds: the output's margin against the jitter of the stream loop, paid
-        in latency (it rounds up to whole hops or card blocks). 0: play as soon as a hop is there.
+        in latency. It is rounded down to whole periods of the card (the samples it takes per callback): a
+        loop that is late by less than the margin plus one period loses nothing; a margin shorter than a
+        period would protect nothing. 0: play as soon as a hop is there.
     """
 
     def __init__(self, name: str, *, sample_rate_hz: float, block_samples: int = 0, queue_s: float = 0.01) -> None:
@@ -601,8 +611,9 @@ class CardPlayback:
         self.info = info
         self.sample_rate_hz = float(sample_rate_hz)
         self.ring = _OutputRing(int(max(4 * queue_s, 1.0) * sample_rate_hz))
-        self.ring.prime_samples = max(1, int(queue_s * sample_rate_hz))
-        self.max_queue = 2 * self.ring.prime_samples + int(0.05 * sample_rate_hz)
+        self.ring.margin_samples = self.ring.prime_samples = int(queue_s * sample_rate_hz)
+        self.max_queue = 2 * self.ring.margin_samples + int(0.05 * sample_rate_hz)
+        self._told_margin = False
         self.n_dropped_samples = 0
         try:
             sd.check_output_settings(device=info.index, channels=1, samplerate=self.sample_rate_hz, dtype="float32")
@@ -652,6 +663,13 @@ class CardPlayback:
             raise StreamError(f"Output card '{self.info.name}': its audio callback failed "
                               f"({type(err).__name__}: {err}).")
         ring = self.ring
+        if not self._told_margin and ring.block:
+            self._told_margin = True
+            if ring.prime_samples < ring.margin_samples:
+                fs = self.sample_rate_hz
+                log.info("Output margin: %.1f ms (%d whole periods of %.1f ms of the output card; %.1f ms asked: "
+                         "less than a period only adds latency).", 1e3 * ring.prime_samples / fs,
+                         ring.prime_samples // ring.block, 1e3 * ring.block / fs, 1e3 * ring.margin_samples / fs)
         level = ring.n_written - ring.n_read
         if level > self.max_queue:
             self.n_dropped_samples += len(samples)
@@ -683,7 +701,8 @@ class CardPlayback:
     def counters(self) -> dict[str, int]:
         r = self.ring
         return {"n_underflows": r.n_underflows, "n_underflow_samples": r.n_underflow_samples,
-                "n_port_underflows": r.n_port_underflows, "n_dropped_samples": self.n_dropped_samples}
+                "n_port_underflows": r.n_port_underflows, "n_dropped_samples": self.n_dropped_samples,
+                "period_samples": r.block, "margin_samples": r.prime_samples}
 
     def close(self) -> None:
         if self._stream is not None:

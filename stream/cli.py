@@ -190,8 +190,8 @@ def build_parser() -> argparse.ArgumentParser:
                                                                      "card's default rate)")
     lp.add_argument("--blocksize", type=int, default=0, help="PortAudio block size in samples (default: the host's)")
     lp.add_argument("--output-margin-s", type=float, default=0.01,
-                    help="audio queued before the output card plays: a margin against hiccups, paid in latency "
-                         "(default 0.01; 0: lowest latency)")
+                    help="audio queued before the output card plays: a margin against hiccups, paid in latency, "
+                         "rounded down to whole periods of the card (default 0.01; 0: lowest latency)")
     lp.add_argument("--duration", type=float, metavar="S", help="stop after this many seconds of audio from the reference card (default: Ctrl-C)")
     lp.add_argument("--no-status", dest="status", action="store_false", help="no live status line")
     lp.add_argument("--config", help="TOML file with engine options")

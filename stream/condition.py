@@ -11,11 +11,11 @@ import numpy as np
 import soxr
 
 from .messages import Frame, FrameFlag
+from .offsets import SILENCE_RMS
 
 _LAST = int(FrameFlag.LAST)
 _F32 = np.dtype(np.float32)
 CLIP_LEVEL = 0.999          # |x| at or above this counts as clipped (full scale is 1.0)
-SILENCE_RMS = 1e-7          # a block quieter than this (about -140 dBFS) is digital silence
 
 
 @numba.njit(cache=True, nogil=True)

@@ -16,7 +16,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 from tqdm import tqdm
 
-from . import sinks
+from . import offsets, sinks
 from .calibration import CalibrationSnapshot, OdometryLog, StreamCalibrator
 from .calibration_files import load_odometry_csv
 from .config import EngineConfig, merge
@@ -218,7 +218,7 @@ def run_stream(source, out_dir: str | Path, *, config: EngineConfig, fixture: Fi
     cfg = config
     collector = _Collector()
     logging.getLogger().addHandler(collector)
-    t_wall0, t_cpu0 = time.perf_counter(), time.process_time()
+    t_wall0, t_cpu0 = time.perf_counter(), _cpu_s()
     report: dict[str, Any] = {"status": "ok", "inputs": [], "live": bool(getattr(source, "live", False))}
     pipeline = None
     calibrator = None
@@ -264,7 +264,7 @@ def run_stream(source, out_dir: str | Path, *, config: EngineConfig, fixture: Fi
 
             def write(results) -> None:
                 if results and not steady:   # the first hop out: the stream is running (start-up is over)
-                    steady.append((time.process_time(), time.perf_counter()))
+                    steady.append((_cpu_s(), time.perf_counter()))
                 for result in results:
                     for sink in hop_sinks:
                         sink.write(result)
@@ -291,7 +291,7 @@ def run_stream(source, out_dir: str | Path, *, config: EngineConfig, fixture: Fi
                     if status is not None and time.perf_counter() >= next_status:
                         next_status += status_every_s
                         status(pipeline)
-                steady.append((time.process_time(), time.perf_counter()))   # the input ended
+                steady.append((_cpu_s(), time.perf_counter()))   # the input ended
                 write(pipeline.finish())
                 if on_end is not None:
                     on_end()
@@ -354,13 +354,18 @@ def observed_drift_ppm(time_s: np.ndarray, toa_s: np.ndarray, gated: np.ndarray,
     return out
 
 
+def _cpu_s() -> float:
+    """CPU seconds of the stream's work: this process (every thread) and the offset re-check process."""
+    return time.process_time() + offsets.worker_cpu_s()
+
+
 def _finalise(report, out, cfg, pipeline, layout, fixture, names, collector, t_wall0, t_cpu0, wav, csv_sink,
               steady) -> None:
     for s in (wav, csv_sink):
         if s is not None:
             s.close()
     logging.getLogger().removeHandler(collector)
-    wall_s, cpu_s = time.perf_counter() - t_wall0, time.process_time() - t_cpu0
+    wall_s, cpu_s = time.perf_counter() - t_wall0, _cpu_s() - t_cpu0
     report["settings"] = cfg.as_dict()
     report["python"] = platform.python_version()
     if pipeline is not None:
@@ -417,7 +422,8 @@ def _finalise(report, out, cfg, pipeline, layout, fixture, names, collector, t_w
                                         "beamformer.")
         report["timing"] = {
             "wall_s": wall_s,
-            "cpu_s": cpu_s,
+            "cpu_s": cpu_s,   # this process and the offset re-check process (stream.offsets)
+            "recheck_process": ("failed: " + offsets.worker().failed) if offsets.worker().failed else "ok",
             "real_time_factor": wall_s / audio_s if audio_s else None,
             "block_ms_median": ht.percentile(50),
             "block_ms_p95": ht.percentile(95),

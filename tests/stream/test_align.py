@@ -3,7 +3,8 @@ import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from stream.align import Aligner, coarse_offset
+from stream.align import Aligner
+from stream.offsets import OffsetWorker, coarse_offset, recheck_offsets
 from stream.messages import FrameFlag
 from tests.conftest import bursty_source, delayed
 
@@ -43,6 +44,55 @@ def test_unrelated_signal_has_low_quality():
     b = np.random.default_rng(5).standard_normal(6 * FS).astype(np.float32) * 0.1
     _, quality = coarse_offset(a, b, sample_rate_hz=FS, max_offset_s=2.0)
     assert quality < 0.15
+
+
+def _recheck_case(n_dev=4, seconds=4.0):
+    src = bursty_source(int((seconds + 1) * FS), sample_rate_hz=FS, seed=7)
+    rng = np.random.default_rng(2)
+    ref = src[:int(seconds * FS)]
+    segments = {d: (src[40 * d:40 * d + len(ref)] + 0.01 * rng.standard_normal(len(ref))).astype(np.float32)
+                for d in range(1, n_dev)}
+    return ref, segments
+
+
+def test_the_recheck_process_gives_the_offsets_computed_here_and_counts_its_cpu():
+    """A re-check runs in a child process (so that it does not hold the stream loop's GIL): the same numbers,
+    to the bit, as computed in this process, and the CPU it spent is known for the report."""
+    ref, segments = _recheck_case()
+    worker = OffsetWorker()
+    try:
+        got = worker.compute(ref, segments, sample_rate_hz=FS, max_offset_s=1.0)
+        assert worker.failed is None and worker._proc is not None and worker._proc.poll() is None
+        assert got == recheck_offsets(ref, segments, sample_rate_hz=FS, max_offset_s=1.0)
+        assert {d: o for d, (o, _) in got.items()} == {d: -40 * d for d in segments}
+        assert worker.cpu_s > 0
+        assert worker.compute(ref, {}, sample_rate_hz=FS, max_offset_s=1.0) == {}
+    finally:
+        worker.close()
+    assert worker._proc is None
+
+
+def test_a_recheck_process_that_ends_is_started_again_and_one_that_breaks_falls_back_with_one_warning(caplog):
+    ref, segments = _recheck_case(n_dev=3)
+    expected = recheck_offsets(ref, segments, sample_rate_hz=FS, max_offset_s=1.0)
+    worker = OffsetWorker()
+    try:
+        worker.start()
+        first = worker._proc
+        first.kill()
+        first.wait(5)
+        assert worker.compute(ref, segments, sample_rate_hz=FS, max_offset_s=1.0) == expected
+        assert worker._proc is not first and worker.failed is None      # ended between re-checks: started again
+        worker._proc.stdout.close()                                     # broken in the middle of one
+        with caplog.at_level("WARNING", logger="stream.offsets"):
+            got = worker.compute(ref, segments, sample_rate_hz=FS, max_offset_s=1.0)
+            again = worker.compute(ref, segments, sample_rate_hz=FS, max_offset_s=1.0)
+    finally:
+        worker.close()
+    assert got == again == expected                                     # computed here from then on
+    warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert len(warnings) == 1 and "re-check" in warnings[0] and "thread" in warnings[0], warnings
+    assert worker.failed is not None and worker._proc is None
 
 
 def _run_aligner(devs, splits, hop=64):

@@ -296,3 +296,36 @@ def test_no_sound_card_is_one_sentence(tmp_path):
                        env=env, capture_output=True, text=True, timeout=120)
     assert r.returncode == 2 and "Traceback" not in r.stderr
     assert r.stderr.strip().startswith("adhoc-array: No input sound card is visible to PortAudio")
+
+
+@pytest.mark.parametrize("period, margin, used", [(128, 160, 128), (256, 160, 0), (1024, 480, 0), (1024, 1200, 1024)])
+def test_the_output_margin_is_whole_card_periods_and_covers_a_loop_that_is_late(period, margin, used):
+    """The card takes a period per callback and the stream loop answers each capture callback with one hop:
+    it has one period, plus the margin. A margin shorter than a period protects nothing (the late hop's
+    callback finds too little either way) and would only add latency, so the margin is whole periods: a loop
+    late by less than margin + period loses nothing, and the queue then holds the margin, not more."""
+    from stream.cards import _OutputRing
+    ring = _OutputRing(16 * period)
+    ring.margin_samples = ring.prime_samples = margin
+    out = np.zeros((period, 1), np.float32)
+    hop = np.arange(period, dtype=np.float32)
+
+    def cycle(n_hops: int = 1) -> None:   # one server cycle: the playback callback, then the loop's hops
+        ring.take(out, period)
+        for _ in range(n_hops):
+            ring.buf[ring.n_written % ring.capacity:][:period] = hop
+            ring.n_written += period
+
+    for _ in range(2 + used // period):   # the first hops: playing starts with a period and the margin queued
+        cycle()
+    assert ring.prime_samples == used and ring.n_underflows == 0
+    assert ring.n_written - ring.n_read == used + period          # after this cycle's hop: the margin and a hop
+    for _ in range(10):
+        cycle()
+    assert ring.n_written - ring.n_read == used + period and ring.n_underflows == 0
+    cycle(0)                                                      # one hop a period late: it comes with the next
+    cycle(2)
+    cycle()
+    assert ring.n_underflows == (0 if used else 1)
+    if used:
+        assert ring.n_written - ring.n_read == used + period
