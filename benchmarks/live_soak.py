@@ -79,7 +79,7 @@ def _looping_player(bay: PatchBay, audio: np.ndarray, client: str, stop: threadi
             time.sleep(0.05)
 
 
-def run(name: str, rate: int, frame: int, hop: int, period: int, seconds: float) -> dict:
+def run(name: str, rate: int, frame: int, hop: int, period: int, seconds: float, estimator: str | None = None) -> dict:
     audio = fixture_audio(rate)
     with jack_dummy_server(sample_rate_hz=rate, period_samples=period, n_channels=N_DEV) as server:
         env = dict(os.environ, JACK_DEFAULT_SERVER=server.name)
@@ -103,6 +103,8 @@ def run(name: str, rate: int, frame: int, hop: int, period: int, seconds: float)
                    str(frame), "--hop-samples", str(hop)]
             for k in range(N_DEV):
                 cmd += ["--input", f"system:{k + 1}"]
+            if estimator:
+                cmd += ["--estimator", estimator]
             eng = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=seconds + 300)
             stop.set()
             player.join(5)
@@ -114,6 +116,7 @@ def run(name: str, rate: int, frame: int, hop: int, period: int, seconds: float)
     return {
         "config": name, "rate_hz": rate, "n_devices": N_DEV, "frame_samples": frame, "hop_samples": hop,
         "jack_period_samples": period, "seconds": seconds, "status": report.get("status"),
+        "estimator": report.get("settings", {}).get("estimator"),
         "exit_code": eng.returncode,
         "audio_s": report.get("stream", {}).get("audio_s"),
         "n_overflows": sum(c["n_overflows"] for c in cards.get("inputs", [])),
@@ -135,11 +138,13 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--minutes", type=float, default=10.0, help="soak run (8 ch, 48 kHz)")
     ap.add_argument("--cpu-minutes", type=float, default=2.0, help="CPU run (8 dev, 16 kHz, hop 128)")
+    ap.add_argument("--estimator", help="the engine's TOA estimator (default: live's, the tracker)")
     args = ap.parse_args(argv)
-    results = [run("cpu", 16000, 512, 128, 128, 60 * args.cpu_minutes),
-               run("soak", 48000, 4096, 1024, 1024, 60 * args.minutes)]
+    results = [run("cpu", 16000, 512, 128, 128, 60 * args.cpu_minutes, args.estimator),
+               run("soak", 48000, 4096, 1024, 1024, 60 * args.minutes, args.estimator)]
     for r in results:
         print(f"{r['config']:>4}: {r['n_devices']} devices at {r['rate_hz']} Hz, {r['frame_samples']}/{r['hop_samples']}, "
+              f"{r['estimator']}, "
               f"{r['audio_s']:.0f} s: overflows {r['n_overflows']}, gaps {r['n_gaps']}, underflows "
               f"{r['n_underflows']}; CPU {r['cpu_share_percent']} % of a core (running: "
               f"{r['running_cpu_share_percent']} %; I/O alone "

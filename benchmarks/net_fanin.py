@@ -772,7 +772,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--working-rate-hz", default="0",
                     help="aggregate's engine rate(s), comma-separated, one aggregate (and in-process) run each "
                          "(default 0: the engine's default, the devices' 48 kHz; e.g. 0,16000)")
-    ap.add_argument("--engine-args", default="", help="more aggregate options, e.g. \"--estimator pinv\"")
+    ap.add_argument("--engine-args", default="--estimator kalman",
+                    help="more aggregate options (default \"--estimator kalman\": the network path's figures, as in "
+                         "the README, without the tracker's cost; \"\" for the live default)")
     ap.add_argument("--data", help="folder of speech WAVs (e.g. ../shared/data/audio/vctk-48k); default synthetic")
     ap.add_argument("--no-peer", action="store_true", help="skip the peer-to-peer baseline")
     ap.add_argument("--no-netsource", action="store_true", help="skip the NetSource receiver")

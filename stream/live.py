@@ -26,10 +26,9 @@ log = logging.getLogger(__name__)
 # sound cards we open start within milliseconds of each other: a short alignment window and search range
 # (overridable) make the first output come after about 4.5 s instead of 12 s; a device that was quiet then is
 # re-checked every 5 s
-# live and network streams: a shorter first alignment, and the Kalman TOA: the tracker (replay's default) does not
-# fit the live budget yet (48 kHz 4096/1024: 17.5 % of a core and 5 output underflows in 3 minutes, against 4.8 %
-# and none; README); --estimator tracks turns it on
-LIVE_DEFAULTS = {"align_window_s": 4.0, "max_offset_s": 0.5, "align_recheck_s": 5.0, "estimator": "kalman"}
+# live and network streams use replay's estimator, the tracker (since 2026-11-27: its underflows at 48 kHz came from
+# the stream loop's stalls, now gone; it costs 12-16 % of a core here against 7-8 % for --estimator kalman: README)
+LIVE_DEFAULTS = {"align_window_s": 4.0, "max_offset_s": 0.5, "align_recheck_s": 5.0}
 
 
 class StatusLine:

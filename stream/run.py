@@ -331,6 +331,15 @@ def run_stream(source, out_dir: str | Path, *, config: EngineConfig, fixture: Fi
     return RunOutcome(report, pipeline, out)
 
 
+def _observed_drift(pipeline) -> np.ndarray:
+    """:func:`observed_drift_ppm` of the stream's TOA over the frames it steered by (the tracker: not those
+    without a talker, whose TOA is the last one held)."""
+    time_s, toa_s, gated = pipeline.toa_track()
+    if pipeline.tracker is not None and len(pipeline.state.track_id) == len(time_s):
+        gated = gated | (np.asarray(pipeline.state.track_id) < 0)
+    return observed_drift_ppm(time_s, toa_s, gated)
+
+
 def observed_drift_ppm(time_s: np.ndarray, toa_s: np.ndarray, gated: np.ndarray, *,
                        min_span_s: float = 20.0) -> np.ndarray:
     """Each device's clock drift against the reference as the stream saw it: the slope of its relative TOA
@@ -394,7 +403,7 @@ def _finalise(report, out, cfg, pipeline, layout, fixture, names, collector, t_w
             "alignment_events": [vars(e) for e in pipeline.alignment_events],
             "late_blocks": pipeline.aligner.n_late_blocks.tolist(),
             "final_channel_weights": np.asarray(pipeline.das.channel_weights, float).tolist(),
-            "observed_drift_ppm": observed_drift_ppm(*pipeline.toa_track()).tolist(),
+            "observed_drift_ppm": _observed_drift(pipeline).tolist(),
         }
         active = [d for d in report.get("devices", []) if d["usable"]]
         for channel, counters, checker in zip(layout.channels, pipeline.device_counters, pipeline.checkers):
