@@ -194,6 +194,9 @@ class Aligner:
         self.quality = np.ones(n_devices)
         self.aligned = np.ones(n_devices, dtype=bool)
         self._is_reference = np.arange(n_devices) == 0
+        # the device whose audio the offsets are measured against: the reference (device 0), unless it shares no
+        # clear sound with most of the others (it hears only noise, or nothing) and another device does
+        self.pivot = 0
         self.ready = False
         self.next_block = 0
         self.events: list[AlignmentEvent] = []
@@ -276,21 +279,60 @@ class Aligner:
                 self.messages.append(msg)
                 log.warning(msg)
 
+    def _offsets_against(self, p: int, s0: int) -> dict[int, tuple[int, float]]:
+        """``{device: (offset, quality)}`` of the first device of every other clock group against device ``p``'s
+        first alignment window (offsets of ``p``'s own clock: ``p`` at 0)."""
+        ref = self._bufs[p].data[s0:s0 + self.window_samples].copy()
+        out = {}
+        for d in range(self.n_devices):
+            if d == p or self.clock_groups[d] != d or self.clock_groups[d] == self.clock_groups[p]:
+                continue
+            x = self._bufs[d].data[s0:s0 + self.window_samples + int(self.max_offset_s * self.sample_rate_hz)]
+            out[d] = coarse_offset(ref, x, sample_rate_hz=self.sample_rate_hz, max_offset_s=self.max_offset_s)
+        return out
+
     def _initial_alignment(self) -> None:
         s0 = self._ref_start or 0     # a reference that joined the network late: its window starts at its audio
-        ref = self._bufs[0].data[s0:s0 + self.window_samples].copy()
+        found = self._offsets_against(0, s0)
+        n_ok = sum(q >= self.min_quality for _, q in found.values())
+        if len(found) >= 2 and 2 * n_ok < len(found):
+            # the reference shares no clear sound with most devices (it hears only noise, a mic covered or
+            # broken): measure against the device that shares it with the most others, so that they are aligned
+            # with each other and beamformed, and leave the reference out
+            best = (n_ok, 0, found)
+            for p in found:
+                other = self._offsets_against(p, s0)
+                n = sum(q >= self.min_quality for _, q in other.values())
+                if n > best[0]:
+                    best = (n, p, other)
+            _, self.pivot, found = best
+            if self.pivot:
+                found[self.pivot] = (0, 1.0)
+                q0 = found.pop(0)[1]
+                self.offsets_samples[0], self.quality[0] = 0, q0
+                self._is_reference = np.arange(self.n_devices) == self.pivot
+                if q0 < self.min_quality:
+                    for m in self._group_of[0]:
+                        self.aligned[m] = False
+                msg = (f"The reference device 0 shares no clear sound with the other devices (envelope correlation "
+                       f"below {self.min_quality:g} with {len(found) - n_ok} of {len(found)}: it may hear only "
+                       f"noise); the offsets are measured against device {self.pivot}"
+                       + (", and device 0 is left out of the beamformer until it shares their sound."
+                          if q0 < self.min_quality else "."))
+                self.messages.append(msg)
+                log.warning(msg)
         for d in range(1, self.n_devices):
             g = self.clock_groups[d]
             if g != d:   # a mic of an array: its device's offset (the first mic's, measured before it)
                 self.offsets_samples[d], self.quality[d], self.aligned[d] = (self.offsets_samples[g],
                                                                             self.quality[g], self.aligned[g])
                 continue
-            x = self._bufs[d].data[s0:s0 + self.window_samples + int(self.max_offset_s * self.sample_rate_hz)]
-            off, q = coarse_offset(ref, x, sample_rate_hz=self.sample_rate_hz, max_offset_s=self.max_offset_s)
+            off, q = found[d]
             self.offsets_samples[d], self.quality[d] = off, q
             if q < self.min_quality:
                 self.aligned[d] = False
-                msg = (f"Device {d} shares no clear sound with the reference within ±{self.max_offset_s:g} s "
+                what = "the reference" if not self.pivot else f"device {self.pivot}"
+                msg = (f"Device {d} shares no clear sound with {what} within ±{self.max_offset_s:g} s "
                        f"(envelope correlation {q:.2f}); it is left out of the beamformer.")
                 self.messages.append(msg)
                 log.warning(msg)
@@ -307,12 +349,14 @@ class Aligner:
         # is submitted), written once when the aligner was made: fresh arrays cost page faults, 2-3 ms per
         # device at 48 kHz on this VM
         n = ref_end - ref_start
-        ref = self._slice(0, ref_start, ref_end, self._snapshots[0, :n])
+        p = self.pivot
+        o = int(self.offsets_samples[p])
+        ref = self._slice(p, ref_start + o, ref_end + o, self._snapshots[p, :n])
         if ref is None:
             return
         segments = {}
-        for d in range(1, self.n_devices):
-            if self.clock_groups[d] != d:
+        for d in range(self.n_devices):
+            if self.clock_groups[d] != d or d == p or self.clock_groups[d] == self.clock_groups[p]:
                 continue
             o = int(self.offsets_samples[d])
             x = self._slice(d, ref_start + o, ref_end + o, self._snapshots[d, :n])

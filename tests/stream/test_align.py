@@ -176,3 +176,24 @@ def test_a_device_with_a_new_clock_leaves_the_beam_until_a_recheck_finds_it():
     after = [b for b in blocks if b.first_sample >= 10 * FS]
     assert not after[0].valid[1]                                 # out of the beam at once
     assert al.offsets_samples[1] == -1600 and after[-1].valid[1]  # found again by a re-check
+
+
+def test_a_reference_that_hears_only_noise_gives_way_to_the_device_the_others_share_their_sound_with():
+    """Device 0 records only noise: the offsets are measured against device 1 instead (one sentence says so),
+    device 0 is left out, and the re-checks measure against device 1 too (device 2 restarts with a new clock
+    and is found again)."""
+    src = bursty_source(30 * FS, sample_rate_hz=FS, seed=8)
+    src = src + 1e-3 * np.random.default_rng(8).standard_normal(len(src)).astype(np.float32)
+    noise = 0.05 * np.random.default_rng(9).standard_normal(30 * FS).astype(np.float32)
+    al = Aligner(3, sample_rate_hz=FS, hop_samples=64, align_window_s=3.0, max_offset_s=1.0, recheck_s=2.0,
+                 deadline_s=None)
+    list(al.push(0, noise, FrameFlag.NONE))
+    list(al.push(1, src[:29 * FS], FrameFlag.NONE))
+    list(al.push(2, src[500:10 * FS], FrameFlag.NONE))      # device 2 started 500 samples later
+    assert al.ready and al.pivot == 1
+    assert al.aligned.tolist() == [False, True, True]
+    assert al.offsets_samples[1] == 0 and al.offsets_samples[2] == -500
+    assert any("measured against device 1" in m for m in al.messages)
+    blocks = list(al.push(2, src[10 * FS + 1600:29 * FS], FrameFlag.NEW_CLOCK))   # 0.1 s on, its new clock
+    assert not any(b.valid[0] for b in blocks)
+    assert al.offsets_samples[2] == -2100 and blocks[-1].valid[2]   # found again against device 1

@@ -189,3 +189,55 @@ def test_without_a_talker_or_a_noise_source_the_output_is_the_devices_average(tm
     x0, _ = sf.read(paths[0], dtype="float32")
     quiet = np.mean(y[fs:-fs] ** 2) / np.mean(x0[fs:len(y) - fs] ** 2)
     assert 0.5 / n_dev < quiet < 2.0 / n_dev, quiet
+
+
+def _with_noise_device(tmp_path: Path, device: int) -> Path:
+    """A copy of the meeting_table fixture in which one device records only white noise (a covered or broken mic,
+    a phone in a pocket next to a fan)."""
+    import shutil
+    folder = tmp_path / "fx"
+    shutil.copytree(FIXTURE, folder)
+    path = folder / f"dev{device:02d}.flac"
+    x, fs = sf.read(path, dtype="float32")
+    sf.write(path, 0.05 * np.random.default_rng(3).standard_normal(len(x)).astype(np.float32), fs, subtype="PCM_16")
+    return folder
+
+
+def test_a_device_that_hears_only_noise_leaves_the_talker_tracked_on_the_others(tmp_path):
+    folder = _with_noise_device(tmp_path, 3)
+    outcome = run_replay([folder], tmp_path / "o", config=EngineConfig(**FAST))
+    time_s, toa_s, _ = outcome.pipeline.toa_track()
+    truth = load_fixture(folder).truth_toa_at(time_s)
+    truth -= truth[:, :1]
+    steered = np.asarray(outcome.pipeline.state.track_id) >= 0
+    late = time_s > 2.0
+    assert steered[late].mean() > 0.9
+    others = [0, 1, 2, 4, 5]
+    err = np.abs(toa_s[:, others] - truth[:, others]).max(axis=1)
+    assert np.mean(err[late & steered] <= 2.5e-4) > 0.9
+    enh = outcome.report["metrics"]["enhancement"]
+    assert enh["engine"]["si_sdr_db"] > enh["best_single_device"]["si_sdr_db"] + 3.0
+
+
+def test_a_reference_that_hears_only_noise_is_left_out_and_the_others_are_aligned_on_each_other(tmp_path):
+    """Device 0 (the reference the offsets are measured against) hears only noise: every other device used to be
+    left out for sharing no sound with it, and the output was that noise. Now the offsets are measured against the
+    device that shares its sound with the most others, device 0 is left out, and the output equals the run without
+    device 0 at all (whose reference is device 1), with one sentence saying why."""
+    folder = _with_noise_device(tmp_path, 0)
+    files = sorted(folder.glob("dev*.flac"))
+    a = run_replay(files, tmp_path / "a", config=EngineConfig(**FAST))
+    b = run_replay(files[1:], tmp_path / "b", config=EngineConfig(**FAST))
+    report = json.loads((tmp_path / "a" / "report.json").read_text())
+    assert report["stream"]["aligned"] == [False, True, True, True, True, True]
+    assert any("reference device 0 shares no clear sound" in m and "measured against device 1" in m
+               for m in report["messages"])
+    assert not any("No speech" in m for m in report["messages"])
+    without = json.loads((tmp_path / "b" / "report.json").read_text())["stream"]["coarse_offsets_s"]
+    assert report["stream"]["coarse_offsets_s"][1:] == without
+    assert np.mean(np.asarray(a.pipeline.state.track_id) >= 0) > 0.9
+    ya, fs = sf.read(tmp_path / "a" / "enhanced.wav", dtype="float32")
+    yb, _ = sf.read(tmp_path / "b" / "enhanced.wav", dtype="float32")
+    n = min(len(ya), len(yb))
+    mid = slice(2 * fs, n - fs)
+    assert np.corrcoef(ya[mid], yb[mid])[0, 1] > 0.999   # measured 0.99992
