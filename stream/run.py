@@ -515,7 +515,8 @@ def _plots(out: Path, pipeline: Pipeline, layout: ChannelLayout, fixture: Fixtur
                       for k, h in pipeline.state.source_tracks.items()}
             plots.plot_source_tracks(out / "sources.png", tracks=tracks, time_s=time_s,
                                      steered_id=np.asarray(pipeline.state.track_id), truth=truth,
-                                     device_names=dev_names, title="Tracked sources (steered: thick)")
+                                     device_names=dev_names, title="Tracked sources (steered: thick)",
+                                     reference=0 if pipeline.aligner.aligned[0] else pipeline.aligner.pivot)
         enhanced = pipeline.enhanced_signal()
         fs = cfg.working_rate_hz
         if fixture is not None and fixture.truth_clean is not None:

@@ -213,10 +213,12 @@ def plot_source_tracks(
     device_names: Sequence[str] | None = None,
     max_devices: int = 8,
     title: str | None = None,
+    reference: int = 0,
 ) -> Path:
     """Every tracked source over time, the steered one highlighted (the multi-source tracker).
 
-    One panel per device ``1..min(M-1, max_devices)``: its TOA relative to device 0 for every confirmed
+    One panel per device other than ``reference`` (at most ``max_devices``): its TOA relative to ``reference``
+    (device 0, or the device the offsets were measured against when device 0 was left out) for every confirmed
     track (talker tracks in colour, noise tracks grey dashed), the frames in which a track was steered
     drawn thick in black over it, and, when given, each true source as a dotted line.
 
@@ -238,17 +240,18 @@ def plot_source_tracks(
     ids = sorted(tracks)
     m = next((len(tracks[i]["toa_s"][0]) for i in ids if tracks[i]["toa_s"]), 2)
     n_panels = max(1, min(m - 1, max_devices))
+    r = int(reference) if 0 <= int(reference) < m else 0
+    panel_devices = [d for d in range(m) if d != r][:n_panels]
     names = list(device_names) if device_names is not None else [f"device {i}" for i in range(m)]
     fig, axes = plt.subplots(n_panels, 1, figsize=(10, 2.2 * n_panels + 0.8), sharex=True, squeeze=False)
     colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     steer_times = np.asarray(time_s)
     steered_id = np.asarray(steered_id)
-    for p in range(n_panels):
+    for p, d in enumerate(panel_devices):
         ax = axes[p, 0]
-        d = p + 1
         if truth:
             for k, (name, (tt, tv)) in enumerate(truth.items()):
-                ax.plot(tt, 1e3 * (tv[:, d] - tv[:, 0]), ":", color="0.3" if "noise" in name else "k", lw=1.2,
+                ax.plot(tt, 1e3 * (tv[:, d] - tv[:, r]), ":", color="0.3" if "noise" in name else "k", lw=1.2,
                         label=f"true {name}" if p == 0 else None)
         for n_i, tid in enumerate(ids):
             h = tracks[tid]
@@ -256,7 +259,7 @@ def plot_source_tracks(
                 continue
             t = np.asarray(h["time_s"])
             v = np.vstack(h["toa_s"])
-            rel = 1e3 * (v[:, d] - v[:, 0])
+            rel = 1e3 * (v[:, d] - v[:, r])
             noise = h["kind"] == "noise"
             ax.plot(t, rel, "--" if noise else "-", color="0.6" if noise else colours[n_i % len(colours)],
                     lw=0.9, label=(f"track {tid} ({h['kind']})" if p == 0 else None))
@@ -264,12 +267,12 @@ def plot_source_tracks(
             if on.any():
                 ax.plot(t, np.where(on, rel, np.nan), "-", color="k", lw=2.6, alpha=0.55,
                         label=None)
-        ax.set_ylabel(f"{names[d]} - {names[0]}\n(ms)")
+        ax.set_ylabel(f"{names[d]} - {names[r]}\n(ms)")
         ax.grid(alpha=0.3)
     axes[0, 0].plot([], [], "-", color="k", lw=2.6, alpha=0.55, label="steered")
     axes[0, 0].legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8)
     axes[-1, 0].set_xlabel("time (s)")
-    shown = f" (devices 1-{n_panels} of {m - 1})" if n_panels < m - 1 else ""
+    shown = f" ({n_panels} of {m - 1} devices)" if n_panels < m - 1 else ""
     fig.suptitle((title or "Tracked sources: relative TOA, steered track thick") + shown)
     fig.subplots_adjust(right=0.76, hspace=0.15)
     return _save(fig, path)
