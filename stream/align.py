@@ -315,8 +315,8 @@ class Aligner:
                     for m in self._group_of[0]:
                         self.aligned[m] = False
                 msg = (f"The reference device 0 shares no clear sound with the other devices (envelope correlation "
-                       f"below {self.min_quality:g} with {len(found) - n_ok} of {len(found)}: it may hear only "
-                       f"noise); the offsets are measured against device {self.pivot}"
+                       f"below {self.min_quality:g} with {len(found) - n_ok} of {len(found)}: it may hear only noise, "
+                       f"or nothing); the offsets are measured against device {self.pivot}"
                        + (", and device 0 is left out of the beamformer until it shares their sound."
                           if q0 < self.min_quality else "."))
                 self.messages.append(msg)

@@ -197,3 +197,12 @@ def test_a_reference_that_hears_only_noise_gives_way_to_the_device_the_others_sh
     blocks = list(al.push(2, src[10 * FS + 1600:29 * FS], FrameFlag.NEW_CLOCK))   # 0.1 s on, its new clock
     assert not any(b.valid[0] for b in blocks)
     assert al.offsets_samples[2] == -2100 and blocks[-1].valid[2]   # found again against device 1
+
+
+def test_a_silent_reference_gives_way_too():
+    src = bursty_source(8 * FS, sample_rate_hz=FS, seed=9)
+    src = src + 1e-3 * np.random.default_rng(9).standard_normal(len(src)).astype(np.float32)   # a room, not zeros
+    al, blocks = _run_aligner([np.zeros(6 * FS, np.float32), src[:6 * FS], src[300:6 * FS]], [1000] * 40)
+    assert al.pivot == 1 and al.aligned.tolist() == [False, True, True] and al.offsets_samples[2] == -300
+    valid = np.array([b.valid for b in blocks])
+    assert not valid[:, 0].any() and valid[:, 1:].mean() > 0.95
