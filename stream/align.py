@@ -285,42 +285,56 @@ class Aligner:
         ref = self._bufs[p].data[s0:s0 + self.window_samples].copy()
         out = {}
         for d in range(self.n_devices):
-            if d == p or self.clock_groups[d] != d or self.clock_groups[d] == self.clock_groups[p]:
+            if self.clock_groups[d] != d or d == p:   # p is the first device of its group
                 continue
             x = self._bufs[d].data[s0:s0 + self.window_samples + int(self.max_offset_s * self.sample_rate_hz)]
             out[d] = coarse_offset(ref, x, sample_rate_hz=self.sample_rate_hz, max_offset_s=self.max_offset_s)
         return out
 
+    @property
+    def time_reference(self) -> int:
+        """The device whose time the beam keeps: device 0, or :attr:`pivot` while device 0 is left out (its TOA is
+        then only the convention ``toa[0] = 0``, and a moving one)."""
+        return 0 if self.aligned[0] else self.pivot
+
+    def _choose_pivot(self, s0: int, found: dict[int, tuple[int, float]]) -> dict[int, tuple[int, float]]:
+        """The reference shares no clear sound with most devices (it hears only noise, a mic covered or broken):
+        measure against the device that shares it with the most others, so that they are aligned with each other
+        and beamformed, and leave the reference out. Returns the offsets of every other group's first device,
+        device 0's included, against the pivot (``found`` when no device does better)."""
+        def n_ok(offsets):
+            return sum(q >= self.min_quality for _, q in offsets.values())
+
+        n_bad = len(found) - n_ok(found)
+        best_n, best = n_ok(found), found
+        for p in found:
+            other = self._offsets_against(p, s0)
+            n = n_ok(other)
+            if n > best_n:
+                best_n, best, self.pivot = n, other, p
+        if not self.pivot:
+            return found
+        q0 = best[0][1]
+        best[self.pivot] = (0, 1.0)
+        self._is_reference = np.arange(self.n_devices) == self.pivot
+        msg = (f"The reference device 0 shares no clear sound with the other devices (envelope correlation below "
+               f"{self.min_quality:g} with {n_bad} of {len(found)}: it may hear only noise, or nothing); the offsets "
+               f"are measured against device {self.pivot}"
+               + (", and device 0 is left out of the beamformer until it shares their sound."
+                  if q0 < self.min_quality else "."))
+        self.messages.append(msg)
+        log.warning(msg)
+        return best
+
     def _initial_alignment(self) -> None:
         s0 = self._ref_start or 0     # a reference that joined the network late: its window starts at its audio
         found = self._offsets_against(0, s0)
-        n_ok = sum(q >= self.min_quality for _, q in found.values())
-        if len(found) >= 2 and 2 * n_ok < len(found):
-            # the reference shares no clear sound with most devices (it hears only noise, a mic covered or
-            # broken): measure against the device that shares it with the most others, so that they are aligned
-            # with each other and beamformed, and leave the reference out
-            best = (n_ok, 0, found)
-            for p in found:
-                other = self._offsets_against(p, s0)
-                n = sum(q >= self.min_quality for _, q in other.values())
-                if n > best[0]:
-                    best = (n, p, other)
-            _, self.pivot, found = best
-            if self.pivot:
-                found[self.pivot] = (0, 1.0)
-                q0 = found.pop(0)[1]
-                self.offsets_samples[0], self.quality[0] = 0, q0
-                self._is_reference = np.arange(self.n_devices) == self.pivot
-                if q0 < self.min_quality:
-                    for m in self._group_of[0]:
-                        self.aligned[m] = False
-                msg = (f"The reference device 0 shares no clear sound with the other devices (envelope correlation "
-                       f"below {self.min_quality:g} with {len(found) - n_ok} of {len(found)}: it may hear only noise, "
-                       f"or nothing); the offsets are measured against device {self.pivot}"
-                       + (", and device 0 is left out of the beamformer until it shares their sound."
-                          if q0 < self.min_quality else "."))
-                self.messages.append(msg)
-                log.warning(msg)
+        if len(found) >= 2 and 2 * sum(q >= self.min_quality for _, q in found.values()) < len(found):
+            found = self._choose_pivot(s0, found)
+        if self.pivot:   # device 0 is measured like any other device, against the pivot
+            self.quality[0] = found[0][1]
+            for m in self._group_of[0]:
+                self.aligned[m] = self.quality[0] >= self.min_quality
         for d in range(1, self.n_devices):
             g = self.clock_groups[d]
             if g != d:   # a mic of an array: its device's offset (the first mic's, measured before it)
@@ -356,7 +370,7 @@ class Aligner:
             return
         segments = {}
         for d in range(self.n_devices):
-            if self.clock_groups[d] != d or d == p or self.clock_groups[d] == self.clock_groups[p]:
+            if self.clock_groups[d] != d or d == p:   # p is the first device of its group
                 continue
             o = int(self.offsets_samples[d])
             x = self._slice(d, ref_start + o, ref_end + o, self._snapshots[d, :n])

@@ -496,13 +496,8 @@ class Pipeline:
     def _steer(self, spectra, block: Block, time_s: float, tdoa: TdoaFrame, valid: np.ndarray, fine: np.ndarray,
                gated: bool, track_id: int, p_speech: float) -> None:
         """Delay-and-sum of one frame's spectra steered by ``fine``; record it and queue its hop."""
-        p = self.aligner.pivot
-        if p and not self.aligner.aligned[0]:
-            # the reference hears nothing the others do: the beam keeps the time of the device the offsets were
-            # measured against (device 0's TOA is only a convention then, and a moving one)
-            enhanced = self.das.process_spectra(spectra, fine - fine[p], valid=valid)
-        else:
-            enhanced = self.das.process_spectra(spectra, fine, valid=valid)
+        r = self.aligner.time_reference
+        enhanced = self.das.process_spectra(spectra, fine - fine[r] if r else fine, valid=valid)
         toa = ToaEstimate(block.seq, time_s, block.offsets_samples / self.config.working_rate_hz + fine, gated,
                           track_id, p_speech)
         self._record(block, tdoa, toa, enhanced)

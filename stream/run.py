@@ -516,7 +516,7 @@ def _plots(out: Path, pipeline: Pipeline, layout: ChannelLayout, fixture: Fixtur
             plots.plot_source_tracks(out / "sources.png", tracks=tracks, time_s=time_s,
                                      steered_id=np.asarray(pipeline.state.track_id), truth=truth,
                                      device_names=dev_names, title="Tracked sources (steered: thick)",
-                                     reference=0 if pipeline.aligner.aligned[0] else pipeline.aligner.pivot)
+                                     reference=pipeline.aligner.time_reference)
         enhanced = pipeline.enhanced_signal()
         fs = cfg.working_rate_hz
         if fixture is not None and fixture.truth_clean is not None:
