@@ -9,10 +9,13 @@ Candidates (each skipped with a one-line message when its package or model file 
 3. ``silero``: Silero VAD v5/v6 ``silero_vad.onnx`` (MIT) run with ``onnxruntime`` (MIT) directly, no torch:
    512-sample windows at 16 kHz with the 64-sample context prepended, state ``(2, batch, 128)``,
    ``intra_op_num_threads = inter_op_num_threads = 1``, threshold 0.5. The model file is taken from
-   ``--silero-onnx``, else the one the engine ships (``stream/models/silero_vad.onnx``, the 16 kHz op15
+   ``--silero-onnx``, else the one the engine ships (``stream/models/silero_vad.onnx``, the two-rate
    export of silero-vad 6.2.3), else from an installed ``silero_vad`` package, else from a
    ``silero_vad-*.whl`` in ``--silero-wheel-dir`` (default /tmp/silero; get one with
    ``pip download silero-vad --no-deps -d /tmp/silero``), read straight out of the zip.
+4. ``silero8k``: the same model at 8 kHz, as the engine runs it: the 16 kHz input resampled with soxr, 256-sample
+   windows with 32 samples of context (32 ms). Its batched timing (``silero8k_batch8``) includes the streaming
+   resampling of the 8 devices in 128-sample hops.
 
 Ground truth per 10 ms frame: energy of ``truth/clean.flac`` (dry talker on device 0's clock, resampled to
 16 kHz) above (max frame energy - 40 dB), then gaps shorter than 100 ms filled.
@@ -244,39 +247,49 @@ def find_silero_onnx(explicit: str | None, wheel_dir: str) -> tuple[bytes | str,
 
 
 class Silero:
+    """Silero on 32 ms windows at ``rate`` (16 kHz: 512 samples, 64 of context; 8 kHz: 256 and 32, the input
+    resampled from 16 kHz with soxr first, as the engine does)."""
     name = "silero"
-    call_samples = 512
-    CONTEXT = 64
 
-    def __init__(self, model, batch: int = 1):
+    def __init__(self, model, batch: int = 1, rate: int = FS):
         import onnxruntime as ort
         opts = ort.SessionOptions()
         opts.intra_op_num_threads = 1
         opts.inter_op_num_threads = 1
         self.session = ort.InferenceSession(model, sess_options=opts, providers=["CPUExecutionProvider"])
         self.batch = batch
-        self.sr = np.array(FS, dtype=np.int64)
+        self.rate = rate
+        self.window = 512 * rate // FS
+        self.context_samples = 64 * rate // FS
+        self.call_samples = 512                       # at 16 kHz: one window per call
+        if rate != FS:
+            self.name = f"silero{rate // 1000}k"
+        self.sr = np.array(rate, dtype=np.int64)
         self.reset()
 
     def reset(self):
         self.state = np.zeros((2, self.batch, 128), np.float32)
-        self.context = np.zeros((self.batch, self.CONTEXT), np.float32)
+        self.context = np.zeros((self.batch, self.context_samples), np.float32)
 
     def step(self, x: np.ndarray) -> np.ndarray:
-        """One 512-sample window per batch row (float32, full scale 1.0); speech probabilities."""
+        """One window per batch row (float32, full scale 1.0, at ``rate``); speech probabilities."""
         inp = np.concatenate([self.context, x], axis=1)
         out, self.state = self.session.run(None, {"input": inp, "state": self.state, "sr": self.sr})
-        self.context = inp[:, -self.CONTEXT:]
+        self.context = inp[:, -self.context_samples:]
         return out[:, 0]
 
     def run(self, pcm: np.ndarray) -> np.ndarray:
         x = pcm.astype(np.float32) / 32768.0
-        nw = len(x) // 512
+        if self.rate != FS:
+            import soxr
+            x = soxr.resample(x, FS, self.rate).astype(np.float32)
+        w = self.window
+        nw = len(x) // w
         prob = np.empty(nw, np.float32)
         for k in range(nw):
-            prob[k] = self.step(x[None, k * 512:(k + 1) * 512])[0]
+            prob[k] = self.step(x[None, k * w:(k + 1) * w])[0]
         self.prob_windows = prob
-        n = len(x) // FRAME
+        n = len(pcm) // FRAME
         k = np.minimum(((np.arange(n) + 0.5) * FRAME // 512).astype(int), max(nw - 1, 0))
         self.prob = prob[k] if nw else np.zeros(n, np.float32)
         return self.prob >= 0.5
@@ -284,7 +297,7 @@ class Silero:
 
 def make_detectors(args) -> tuple[list, dict, list[str]]:
     dets, load, skipped = [], {}, []
-    for name in ("webrtc", "ten", "silero"):
+    for name in ("webrtc", "ten", "silero", "silero8k"):
         t0 = time.perf_counter()
         try:
             if name == "webrtc":
@@ -293,7 +306,7 @@ def make_detectors(args) -> tuple[list, dict, list[str]]:
                 d = Ten()
             else:
                 model, src = find_silero_onnx(args.silero_onnx, args.silero_wheel_dir)
-                d = Silero(model)
+                d = Silero(model, rate=8000 if name == "silero8k" else FS)
                 d.model_source = src
         except (ImportError, OSError, FileNotFoundError) as e:
             msg = f"skipping {name}: {type(e).__name__}: {e}"
@@ -425,22 +438,33 @@ def timing(dets, pcm: np.ndarray, reps: int) -> dict:
     return out
 
 
-def silero_batched_timing(model, pcm: np.ndarray, reps: int, batch: int = 8) -> dict:
-    """Silero with the 8 devices as one batch of one session.run (one window per device per call)."""
-    s = Silero(model, batch=batch)
-    x = np.tile(pcm.astype(np.float32)[None, :] / 32768.0, (batch, 1))
-    nw = x.shape[1] // 512
+def silero_batched_timing(model, pcm: np.ndarray, reps: int, batch: int = 8, rate: int = FS) -> dict:
+    """Silero with the 8 devices as one batch of one session.run (one window per device per call), at
+    ``rate`` (8 kHz: the resampling of the 8 devices from 16 kHz included, as the engine's streaming resampler
+    does it, in hops of 128 samples)."""
+    s = Silero(model, batch=batch, rate=rate)
+    x16 = np.tile(pcm.astype(np.float32)[None, :] / 32768.0, (batch, 1))
+    w = s.window
     ts = []
     for _ in range(reps):
         s.reset()
         t0 = time.perf_counter()
+        if rate != FS:
+            import soxr
+            rs = soxr.ResampleStream(FS, rate, batch, dtype="float32")
+            x = np.concatenate([rs.resample_chunk(np.ascontiguousarray(x16[:, i:i + 128].T))
+                                for i in range(0, x16.shape[1] - 127, 128)]).T
+        else:
+            x = x16
+        nw = x.shape[1] // w
         for k in range(nw):
-            s.step(x[:, k * 512:(k + 1) * 512])
+            s.step(np.ascontiguousarray(x[:, k * w:(k + 1) * w]))
         ts.append(time.perf_counter() - t0)
     med = float(np.median(ts))
-    return {"us_per_10ms_per_device": med / (x.shape[1] // FRAME) / batch * 1e6,
+    n10 = x16.shape[1] // FRAME
+    return {"us_per_10ms_per_device": med / n10 / batch * 1e6,
             "us_per_call_8dev": med / nw * 1e6,
-            "hop128_8dev_amortised_us": med / (x.shape[1] // FRAME) * 1e6 * 128 / FRAME,
+            "hop128_8dev_amortised_us": med / n10 * 1e6 * 128 / FRAME,
             "hop128_8dev_worst_us": med / nw * 1e6}
 
 
@@ -516,10 +540,12 @@ def main() -> int:
     silero = next((d for d in dets if d.name == "silero"), None)
     if silero is not None:
         model, _ = find_silero_onnx(args.silero_onnx, args.silero_wheel_dir)
-        tim["silero_batch8"] = silero_batched_timing(model, pcm_t, args.reps)
-        if "webrtc" in tim:
-            tim["silero_batch8"]["ratio_to_webrtc"] = (tim["silero_batch8"]["us_per_10ms_per_device"]
-                                                       / tim["webrtc"]["us_per_10ms"])
+        for key, rate in (("silero_batch8", FS), ("silero8k_batch8", 8000)):
+            if rate != FS and not any(d.name == "silero8k" for d in dets):
+                continue
+            tim[key] = silero_batched_timing(model, pcm_t, args.reps, rate=rate)
+            if "webrtc" in tim:
+                tim[key]["ratio_to_webrtc"] = tim[key]["us_per_10ms_per_device"] / tim["webrtc"]["us_per_10ms"]
 
     # ---- table
     print("\nAccuracy (acc / recall / false-alarm rate), raw 10 ms decisions | with 0.15 s hangover")
@@ -547,9 +573,10 @@ def main() -> int:
     print(f"{'detector':14s}{'us/10ms/dev':>12s}{'x webrtc':>10s}{'us/call':>10s}{'call':>6s}"
           f"{'hop128x8 avg':>14s}{'hop128x8 worst':>16s}{'load ms':>9s}{'1st call ms':>12s}")
     for n, t in tim.items():
-        if n == "silero_batch8":
-            print(f"{'silero batch8':14s}{t['us_per_10ms_per_device']:12.1f}{t.get('ratio_to_webrtc', math.nan):10.1f}"
-                  f"{t['us_per_call_8dev']:10.1f}{'8x512':>6s}{t['hop128_8dev_amortised_us']:14.1f}"
+        if n in ("silero_batch8", "silero8k_batch8"):
+            label, call = (("silero batch8", "8x512") if n == "silero_batch8" else ("silero8k bat8", "8x256"))
+            print(f"{label:14s}{t['us_per_10ms_per_device']:12.1f}{t.get('ratio_to_webrtc', math.nan):10.1f}"
+                  f"{t['us_per_call_8dev']:10.1f}{call:>6s}{t['hop128_8dev_amortised_us']:14.1f}"
                   f"{t['hop128_8dev_worst_us']:16.1f}")
             continue
         print(f"{n:14s}{t['us_per_10ms']:12.1f}{t.get('ratio_to_webrtc', math.nan):10.1f}{t['us_per_call']:10.1f}"
