@@ -451,6 +451,7 @@ def _finalise(report, out, cfg, pipeline, layout, fixture, names, collector, t_w
         if pipeline.tracker is not None:
             sources = pipeline.tracker.report()
             sources["speech_presence"] = {"backend": getattr(pipeline.speech, "backend", type(pipeline.speech).__name__),
+                                          "rate_hz": getattr(pipeline.speech, "vad_rate_hz", None),
                                           "speech_fraction": float(np.mean(np.asarray(pipeline.state.speech_probability)
                                                                           >= pipeline.tracker.speech_threshold))
                                           if pipeline.state.speech_probability else 0.0}

@@ -99,6 +99,7 @@ def test_tracks_steer_at_the_talker_of_a_fixture(tmp_path):
     sources = report["sources"]
     assert any(t["kind"] == "speech" for t in sources["tracks"]) and sources["switches"]
     assert sources["speech_presence"]["backend"] == "silero"
+    assert sources["speech_presence"]["rate_hz"] == 8000      # the detector's rate, whatever the working rate
     with open(out / "toa.csv") as fh:
         rows = list(csv.DictReader(fh))
     assert "steered_track" in rows[0] and "speech_probability" in rows[0]
