@@ -150,6 +150,8 @@ class _InputRing:
         self.n_gaps = 0
         self.n_dropped = 0
         self.n_overflows = 0        # PortAudio's input-overflow flags (samples lost before us)
+        self.first_overflow_clock = -1   # n_clock at the first and the latest flag (-1: none)
+        self.last_overflow_clock = -1
         self.n_callbacks = 0
         self.last_callback_s = 0.0  # time.monotonic() of the newest callback
 
@@ -233,6 +235,7 @@ class CardDevice(DeviceInfo):
     n_gaps: int = 0
     n_gap_samples: int = 0
     n_overflows: int = 0
+    overflow_span_s: tuple[float, float] | None = None   # card time of the first and the latest overflow flag
 
 
 class _Wake:
@@ -430,6 +433,9 @@ class CardSource:
             try:
                 if status.input_overflow:
                     ring.n_overflows += 1
+                    if ring.first_overflow_clock < 0:
+                        ring.first_overflow_clock = ring.n_clock
+                    ring.last_overflow_clock = ring.n_clock
                 ring.put(indata, frames)
                 ring.n_callbacks += 1
                 ring.last_callback_s = time.monotonic()
@@ -540,6 +546,9 @@ class CardSource:
             flags = FrameFlag.NONE
         for j, d in enumerate(card.devices):
             self.active[d].n_overflows = ring.n_overflows
+            if ring.first_overflow_clock >= 0:
+                self.active[d].overflow_span_s = (ring.first_overflow_clock / card.rate_hz,
+                                                  ring.last_overflow_clock / card.rate_hz)
 
     def _stalled_cards(self) -> list[_Card]:
         """Cards whose stream stopped, or that stalled while another card still delivers (or, alone,

@@ -123,6 +123,9 @@ def test_live_equals_replay_and_the_recording_replays_exactly(jack, bay, tmp_pat
     rep = live.report
     assert rep["status"] == "ok" and rep["live"] is True, rep.get("error")
     counts = [(c["name"], c["n_overflows"], c["n_gaps"]) for c in rep["cards"]["inputs"]]
+    for c in rep["cards"]["inputs"]:   # when the overflows came (card time): none, or first <= latest in the take
+        assert (c["overflows_s"] is None) == (c["n_overflows"] == 0), c
+        assert c["overflows_s"] is None or 0 <= c["overflows_s"][0] <= c["overflows_s"][1] <= 9.0, c
     # the engine keeps up (no ring gaps) and, without a server xrun, nothing is lost on the way in (output
     # underflows, a hiccup of a loaded machine, are counted, not tested here: benchmarks/live_soak.py measures them)
     assert all(g == 0 for _, _, g in counts), counts
