@@ -350,8 +350,10 @@ def summary(report: dict[str, Any], out: Path) -> str:
     cards = report.get("cards")
     if cards:
         lines.append("  cards: " + ", ".join(f"{c['name']} ({c['card']} ch {','.join(map(str, c['channels']))}, "
-                                            f"{c['sample_rate_hz']:g} Hz, {c['n_overflows']} overflows, "
-                                            f"{c['n_gaps']} gaps)" for c in cards["inputs"]))
+                                            f"{c['sample_rate_hz']:g} Hz, {c['n_overflows']} overflows"
+                                            + (f" ({c['overflows_s'][0]:.1f}-{c['overflows_s'][1]:.1f} s)"
+                                               if c.get("overflows_s") else "")
+                                            + f", {c['n_gaps']} gaps)" for c in cards["inputs"]))
         if "output" in cards:
             o = cards["output"]
             skipped = o["n_dropped_samples"] / st["working_rate_hz"] if st else 0.0
