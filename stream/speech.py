@@ -8,11 +8,12 @@ Backend ``"silero"`` (default): Silero VAD v6 (``stream/models/silero_vad.onnx``
 without torch, on 32 ms windows at 8 kHz (every device's hop goes through one streaming ``soxr`` resampler),
 every device in one batched call. A device speaks from a window with probability >= 0.5 until one below 0.35
 (the model's recommended hysteresis). 8 kHz rather than the model's 16 kHz mode: the batched call costs about
-0.6 of the 16 kHz one, which brings the engine with the tracker under 5 % of a core, and the detector hears
-less of what lies above 4 kHz, where a dish clatter has its energy and speech little of its information
-(README, "Speech presence": the fixtures and the 52 scenes with both). Chosen over WebRTC because WebRTC fires on
-noise (the kitchen recording alone: 37 % of 10 ms frames at 10 dB, 99.5 % at 0 dB) while Silero does not (2 %
-and 0 %), with the best recall on the fixtures (``benchmarks/vad_compare.py``, README "Speech presence").
+0.7 of the 16 kHz one with the resampling (285 against 407 us per window of 8 devices), which brings the engine
+with the tracker to the 5 % budget, and it is at least as accurate here: the kitchen recording alone at 10 dB is
+speech in 0 % of 10 ms frames (2 % at 16 kHz), with a talker over it the recall is 0.985 (0.952); every shipped
+fixture gained with the tracker (README, "Speech presence"). Chosen over WebRTC because WebRTC fires on
+noise (the kitchen recording alone: 37 % of 10 ms frames at 10 dB, 99.5 % at 0 dB) while Silero does not,
+with the best recall on the fixtures (``benchmarks/vad_compare.py``, README "Speech presence").
 
 Backend ``"webrtc"``: the WebRTC voice-activity detector (``webrtcvad-wheels``, MIT licence; Google's
 GMM detector from WebRTC) on 10 ms frames of every device, aggressiveness 3 (fewest false alarms). It takes
@@ -24,8 +25,9 @@ out; the device's probability is 1 while held, else 0. The frame's probability c
 speech against ``ceil(quorum * n_usable)`` (at least one): a talker heard by only some devices still counts,
 a false alarm on one device of many does not make a speech frame.
 
-Latency: a decision refers to the last complete 10 ms VAD frame, so it lags the hop's end by at most 10 ms
-(plus the resampler's delay at other rates).
+Latency: a decision refers to the last complete VAD frame (Silero: 32 ms, WebRTC and energy: 10 ms), so it
+lags the hop's end by at most that (plus the resampler's delay where the detector's rate is not the working
+rate).
 
 Backend ``"energy"`` (fallback when neither ``onnxruntime`` nor ``webrtcvad`` is installed): a device is speaking when its 10 ms frame energy
 is 6 dB above its noise floor (the minimum of the smoothed energy over the last 1.5 s). It cannot tell speech
