@@ -185,6 +185,9 @@ class _OutputRing:
         self.n_underflows = 0        # callbacks that found too little audio (after the first sample arrived)
         self.n_underflow_samples = 0
         self.n_port_underflows = 0   # PortAudio's output-underflow flags
+        self.n_clock = 0             # samples the card took (its time since the stream started)
+        self.first_underflow_clock = -1   # n_clock at the first and the latest underflow (-1: none)
+        self.last_underflow_clock = -1
         self.n_callbacks = 0
         self.draining = False        # the stream has ended: running dry is no longer an underflow
         self.margin_samples = 0      # the margin asked for (CardPlayback's queue_s)
@@ -202,6 +205,7 @@ class _OutputRing:
         if n != self.block:
             self.block = n
             self.prime_samples = self.margin_samples // n * n
+        self.n_clock += n
         r = self.n_read
         avail = self.n_written - r
         if self.priming:
@@ -223,6 +227,9 @@ class _OutputRing:
                 self.n_underflows += 1
                 self.n_underflow_samples += n - k
                 self.priming = True
+                if self.first_underflow_clock < 0:
+                    self.first_underflow_clock = self.n_clock
+                self.last_underflow_clock = self.n_clock
 
 
 # the source ------------------------------------------------------------------------------------
@@ -710,6 +717,9 @@ class CardPlayback:
     def counters(self) -> dict[str, int]:
         r = self.ring
         return {"n_underflows": r.n_underflows, "n_underflow_samples": r.n_underflow_samples,
+                "underflows_s": ([round(r.first_underflow_clock / self.sample_rate_hz, 3),
+                                  round(r.last_underflow_clock / self.sample_rate_hz, 3)]
+                                 if r.first_underflow_clock >= 0 else None),
                 "n_port_underflows": r.n_port_underflows, "n_dropped_samples": self.n_dropped_samples,
                 "period_samples": r.block, "margin_samples": r.prime_samples}
 

@@ -357,7 +357,8 @@ def summary(report: dict[str, Any], out: Path) -> str:
         if "output" in cards:
             o = cards["output"]
             skipped = o["n_dropped_samples"] / st["working_rate_hz"] if st else 0.0
-            lines.append(f"  output {o['card']}: {o['n_underflows']} underflows; {skipped:.1f} s of output skipped to "
+            when = (f" ({o['underflows_s'][0]:.1f}-{o['underflows_s'][1]:.1f} s)" if o.get("underflows_s") else "")
+            lines.append(f"  output {o['card']}: {o['n_underflows']} underflows{when}; {skipped:.1f} s of output skipped to "
                          "stay live (the start-up alignment releases its audio at once)")
         if "recorded_to" in cards:
             lines.append(f"  raw inputs recorded to {cards['recorded_to']} (adhoc-array replay {cards['recorded_to']})")

@@ -332,16 +332,22 @@ def test_the_output_margin_is_whole_card_periods_and_covers_a_loop_that_is_late(
     assert ring.n_underflows == (0 if used else 1)
     if used:
         assert ring.n_written - ring.n_read == used + period
+    else:   # when it happened, in the card's time: the callback of the late cycle
+        n_cycles = 2 + used // period + 10 + 2
+        assert ring.first_underflow_clock == ring.last_underflow_clock == n_cycles * period
 
 
 def test_the_summary_says_when_a_card_overflowed(tmp_path):
-    """The closing summary names each card's overflows and, when there were some, when they came (card time),
+    """The closing summary names each card's overflows and the output's underflows and, when there were some,
+    when they came (card time),
     so that a user can tell a start-up hiccup from a machine that cannot keep up."""
     from stream.cli import summary
     inputs = [{"name": "phone", "card": "system", "channels": [1], "sample_rate_hz": 16000, "n_overflows": 3,
                "overflows_s": [1.25, 7.5], "n_gaps": 0},
               {"name": "laptop", "card": "system", "channels": [2], "sample_rate_hz": 16000, "n_overflows": 0,
                "overflows_s": None, "n_gaps": 0}]
-    text = summary({"cards": {"inputs": inputs}}, tmp_path)
+    output = {"card": "system", "n_underflows": 2, "underflows_s": [61.25, 300.5], "n_dropped_samples": 0}
+    text = summary({"cards": {"inputs": inputs, "output": output}}, tmp_path)
     assert "phone (system ch 1, 16000 Hz, 3 overflows (1.2-7.5 s), 0 gaps)" in text
     assert "laptop (system ch 2, 16000 Hz, 0 overflows, 0 gaps)" in text
+    assert "output system: 2 underflows (61.2-300.5 s);" in text
