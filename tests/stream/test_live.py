@@ -52,7 +52,7 @@ def _clean_take(bay, take, attempts: int = 3):
     for _ in range(attempts):
         x0 = bay.n_xruns
         result = take()
-        time.sleep(0.1)                  # the xrun notice comes on the client's own thread
+        time.sleep(0.5)                  # the xrun notice comes on the client's own thread, sometimes late
         if bay.n_xruns == x0:
             return result, True
     warnings.warn(f"the JACK server had xruns in each of {attempts} takes (the machine is too loaded to run its "
@@ -120,6 +120,7 @@ def test_live_equals_replay_and_the_recording_replays_exactly(jack, bay, tmp_pat
                         names=[d.name for d in fx.devices])
 
     live, clean = _clean_take(bay, take)
+    xruns_after = bay.n_xruns
     rep = live.report
     assert rep["status"] == "ok" and rep["live"] is True, rep.get("error")
     counts = [(c["name"], c["n_overflows"], c["n_gaps"]) for c in rep["cards"]["inputs"]]
@@ -148,7 +149,13 @@ def test_live_equals_replay_and_the_recording_replays_exactly(jack, bay, tmp_pat
     for x, d in zip(rec, sig.T):
         n = min(len(d), len(x) - lead)
         assert _lead(x) == lead and n > 6 * RATE, (lead, _lead(x), n, rep["cards"])
-        assert np.array_equal(x[lead:lead + n], d[:n]), rep["cards"]
+        if not np.array_equal(x[lead:lead + n], d[:n]) and bay.n_xruns > xruns_after:
+            # the server's notice of an xrun in the take came after _clean_take looked: it lost audio
+            warnings.warn("the JACK server reported an xrun of the take late; the sample-exact comparisons "
+                          "were skipped")
+            return
+        assert np.array_equal(x[lead:lead + n], d[:n]), (int(np.flatnonzero(x[lead:lead + n] != d[:n])[0]),
+                                                         bay.n_xruns, xruns_after, rep["cards"])
     # replaying the fixture's own files, with the lead of silence the card delivered before the playback started
     # and the same length, gives the live output exactly (the engine's result depends on where its hops fall
     # in the signal, so the lead must be the same: with 100 samples instead of 1408, SI-SDR moved by -4.7 dB)
