@@ -297,19 +297,20 @@ class Aligner:
         then only the convention ``toa[0] = 0``, and a moving one)."""
         return 0 if self.aligned[0] else self.pivot
 
+    def _n_clear(self, offsets: dict[int, tuple[int, float]]) -> int:
+        """How many of ``{device: (offset, quality)}`` share a clear sound (quality >= ``min_quality``)."""
+        return sum(q >= self.min_quality for _, q in offsets.values())
+
     def _choose_pivot(self, s0: int, found: dict[int, tuple[int, float]]) -> dict[int, tuple[int, float]]:
         """The reference shares no clear sound with most devices (it hears only noise, a mic covered or broken):
         measure against the device that shares it with the most others, so that they are aligned with each other
         and beamformed, and leave the reference out. Returns the offsets of every other group's first device,
         device 0's included, against the pivot (``found`` when no device does better)."""
-        def n_ok(offsets):
-            return sum(q >= self.min_quality for _, q in offsets.values())
-
-        n_bad = len(found) - n_ok(found)
-        best_n, best = n_ok(found), found
+        n_bad = len(found) - self._n_clear(found)
+        best_n, best = self._n_clear(found), found
         for p in found:
             other = self._offsets_against(p, s0)
-            n = n_ok(other)
+            n = self._n_clear(other)
             if n > best_n:
                 best_n, best, self.pivot = n, other, p
         if not self.pivot:
@@ -329,7 +330,7 @@ class Aligner:
     def _initial_alignment(self) -> None:
         s0 = self._ref_start or 0     # a reference that joined the network late: its window starts at its audio
         found = self._offsets_against(0, s0)
-        if len(found) >= 2 and 2 * sum(q >= self.min_quality for _, q in found.values()) < len(found):
+        if len(found) >= 2 and 2 * self._n_clear(found) < len(found):
             found = self._choose_pivot(s0, found)
         if self.pivot:   # device 0 is measured like any other device, against the pivot
             self.quality[0] = found[0][1]

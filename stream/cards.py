@@ -131,6 +131,24 @@ class InputSpec:
 
 
 # ring buffers ----------------------------------------------------------------------------------
+class _Span:
+    """When something went wrong on a card, in its own time: the sample clock of the first and the latest time
+    (noted from the audio thread: two int stores)."""
+
+    def __init__(self) -> None:
+        self.first = -1     # -1: never
+        self.last = -1
+
+    def note(self, clock: int) -> None:
+        if self.first < 0:
+            self.first = clock
+        self.last = clock
+
+    def seconds(self, rate_hz: float) -> list[float] | None:
+        """[first, latest] in seconds of the card's time (ms resolution), None if it never happened."""
+        return None if self.first < 0 else [round(self.first / rate_hz, 3), round(self.last / rate_hz, 3)]
+
+
 class _InputRing:
     """Single-producer (the PortAudio callback) single-consumer ring of frames of one card.
 
@@ -150,8 +168,7 @@ class _InputRing:
         self.n_gaps = 0
         self.n_dropped = 0
         self.n_overflows = 0        # PortAudio's input-overflow flags (samples lost before us)
-        self.first_overflow_clock = -1   # n_clock at the first and the latest flag (-1: none)
-        self.last_overflow_clock = -1
+        self.overflows = _Span()    # n_clock at the first and the latest flag
         self.n_callbacks = 0
         self.last_callback_s = 0.0  # time.monotonic() of the newest callback
 
@@ -186,8 +203,7 @@ class _OutputRing:
         self.n_underflow_samples = 0
         self.n_port_underflows = 0   # PortAudio's output-underflow flags
         self.n_clock = 0             # samples the card took (its time since the stream started)
-        self.first_underflow_clock = -1   # n_clock at the first and the latest underflow (-1: none)
-        self.last_underflow_clock = -1
+        self.underflows = _Span()    # n_clock at the first and the latest underflow
         self.n_callbacks = 0
         self.draining = False        # the stream has ended: running dry is no longer an underflow
         self.margin_samples = 0      # the margin asked for (CardPlayback's queue_s)
@@ -227,9 +243,7 @@ class _OutputRing:
                 self.n_underflows += 1
                 self.n_underflow_samples += n - k
                 self.priming = True
-                if self.first_underflow_clock < 0:
-                    self.first_underflow_clock = self.n_clock
-                self.last_underflow_clock = self.n_clock
+                self.underflows.note(self.n_clock)
 
 
 # the source ------------------------------------------------------------------------------------
@@ -242,7 +256,7 @@ class CardDevice(DeviceInfo):
     n_gaps: int = 0
     n_gap_samples: int = 0
     n_overflows: int = 0
-    overflow_span_s: tuple[float, float] | None = None   # card time of the first and the latest overflow flag
+    overflows_s: list[float] | None = None   # card time of the first and the latest overflow flag
 
 
 class _Wake:
@@ -440,9 +454,7 @@ class CardSource:
             try:
                 if status.input_overflow:
                     ring.n_overflows += 1
-                    if ring.first_overflow_clock < 0:
-                        ring.first_overflow_clock = ring.n_clock
-                    ring.last_overflow_clock = ring.n_clock
+                    ring.overflows.note(ring.n_clock)
                 ring.put(indata, frames)
                 ring.n_callbacks += 1
                 ring.last_callback_s = time.monotonic()
@@ -553,9 +565,7 @@ class CardSource:
             flags = FrameFlag.NONE
         for j, d in enumerate(card.devices):
             self.active[d].n_overflows = ring.n_overflows
-            if ring.first_overflow_clock >= 0:
-                self.active[d].overflow_span_s = (ring.first_overflow_clock / card.rate_hz,
-                                                  ring.last_overflow_clock / card.rate_hz)
+            self.active[d].overflows_s = ring.overflows.seconds(card.rate_hz)
 
     def _stalled_cards(self) -> list[_Card]:
         """Cards whose stream stopped, or that stalled while another card still delivers (or, alone,
@@ -717,9 +727,7 @@ class CardPlayback:
     def counters(self) -> dict[str, int]:
         r = self.ring
         return {"n_underflows": r.n_underflows, "n_underflow_samples": r.n_underflow_samples,
-                "underflows_s": ([round(r.first_underflow_clock / self.sample_rate_hz, 3),
-                                  round(r.last_underflow_clock / self.sample_rate_hz, 3)]
-                                 if r.first_underflow_clock >= 0 else None),
+                "underflows_s": r.underflows.seconds(self.sample_rate_hz),
                 "n_port_underflows": r.n_port_underflows, "n_dropped_samples": self.n_dropped_samples,
                 "period_samples": r.block, "margin_samples": r.prime_samples}
 

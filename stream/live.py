@@ -199,8 +199,7 @@ def run_live(inputs: Sequence[str], out_dir: str | Path, *, output: str | None =
                     log.warning("Closing the %s failed (%s: %s).", key, type(err).__name__, err)
         cards = {"inputs": [{"name": d.name, "card": d.card, "channels": d.channels,
                              "sample_rate_hz": d.sample_rate_hz, "n_overflows": d.n_overflows,
-                             "overflows_s": ([round(t, 3) for t in d.overflow_span_s]
-                                             if getattr(d, "overflow_span_s", None) else None),
+                             "overflows_s": d.overflows_s,
                              "n_gaps": d.n_gaps, "n_gap_samples": d.n_gap_samples} for d in source.active]}
         if "playback" in state:
             pb = state["playback"]

@@ -341,7 +341,7 @@ def test_the_output_margin_is_whole_card_periods_and_covers_a_loop_that_is_late(
         assert ring.n_written - ring.n_read == used + period
     else:   # when it happened, in the card's time: the callback of the late cycle
         n_cycles = 2 + used // period + 10 + 2
-        assert ring.first_underflow_clock == ring.last_underflow_clock == n_cycles * period
+        assert ring.underflows.first == ring.underflows.last == n_cycles * period
 
 
 def test_the_summary_says_when_a_card_overflowed(tmp_path):
