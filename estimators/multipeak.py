@@ -23,6 +23,11 @@ point noise source and with more than one talker:
    further down-weights bins in which the frame's cross power is not above the noise cross power
    (a per-bin SNR weight, in the spirit of the maximum-likelihood GCC weighting). ``"phat"`` is the
    plain eq. (4) on ``X_i X_j^*`` (no removal) for comparison.
+
+   The removal works on a short-time average of ``X_i X_j^*`` (``smoothing_time_constant_s``), which makes a
+   talker's peak far steadier under the noise but lags a moving talker; with
+   ``fast_smoothing_time_constant_s`` the average is shorter in the frames where a pair's cross power stands
+   well above the noise's (``FAST_SNR_DB``).
 2. **The N best peaks** of every pair's correlation within ``|lag| <= max_lag_samples`` (local maxima,
    highest first, refined to a fraction of a sample with the three-point parabola) instead of the
    single maximum of eq. (6), as BeamformIt keeps the N best delays per channel pair.
@@ -51,8 +56,13 @@ _WEIGHTINGS = {"phat": 0, "subtract": 1, "subtract-snr": 2}
 _jit = numba.njit(cache=True, nogil=True, error_model="numpy")
 
 # Parameter slots of the compiled call (one float64 array instead of many arguments).
-_P_MAX_LAG, _P_RATE_HZ, _P_ALPHA, _P_MODE, _P_SPEECH, _P_N_PEAKS, _P_UPDATE, _P_SMOOTH, _P_NOISE_SCALE = range(9)
-_N_PARAMS = 9
+(_P_MAX_LAG, _P_RATE_HZ, _P_ALPHA, _P_MODE, _P_SPEECH, _P_N_PEAKS, _P_UPDATE, _P_SMOOTH, _P_NOISE_SCALE,
+ _P_SMOOTH_FAST, _P_FAST_LO_DB, _P_FAST_HI_DB) = range(12)
+_N_PARAMS = 12
+
+# The short-time average moves from its slow to its fast time constant as a pair's frame cross power (sum of
+# |X_i X_j^*| over the bins) rises from FAST_SNR_DB[0] to FAST_SNR_DB[1] above the noise cross power's.
+FAST_SNR_DB = (15.0, 30.0)
 
 _OK, _BAD_SPECTRA_SHAPE, _BAD_VALID_SHAPE = 0, 1, 2
 _EPS_REL = np.float32(1e-6)
@@ -115,14 +125,29 @@ def _channel_ok(x, valid):
 
 
 @_jit
-def _pair_spectrum(xi, xj, oi, oj, phi, sm, g, scratch, a, b, mode, update, phi_scale):
+def _pair_spectrum(xi, xj, oi, oj, phi, sm, g, scratch, a, b, mode, update, phi_scale, fast, phi_l1, mi, mj):
     """One pair's weighted cross spectrum into ``g`` (module doc): the short-time average ``sm`` of
     ``X_i X_j^*`` (moved by ``b``; ``b = 1``: this frame only) minus the noise cross power ``phi`` (for
     "phat": this frame's ``X_i X_j^*`` alone), optional per-bin weight, PHAT normalisation; then the noise
-    average moves towards the delayed frame's ``O_i O_j^*`` (``oi``, ``oj``) by ``a``. ``phi_scale`` undoes the average's start-up bias (it starts
-    at 0). ``scratch`` (>= n_bins floats) holds |G|^2."""
+    average moves towards the delayed frame's ``O_i O_j^*`` (``oi``, ``oj``) by ``a``. ``phi_scale`` undoes the
+    average's start-up bias (it starts at 0). ``scratch`` (>= n_bins floats) holds |G|^2.
+
+    ``fast = (b_fast, lo_db, hi_db)`` with ``b_fast > b``: ``b`` moves towards ``b_fast`` as the frame's cross
+    power ``sum_k |X_i X_j^*|`` rises from ``lo_db`` to ``hi_db`` above the noise's (``phi_scale * phi_l1[0]``,
+    ``phi_l1[0] = sum_k |phi_k|``, kept up to date here when the noise average moves; ``mi``, ``mj``: the
+    channels' magnitudes ``|X_i|``, ``|X_j|``)."""
     n_bins = xi.shape[0]
     peak2 = np.float32(0.0)
+    if fast[0] > b and mode != 0:
+        sc = 0.0
+        for k in range(n_bins):
+            sc += mi[k] * mj[k]
+        noise = phi_scale * phi_l1[0]
+        share = 1.0
+        if noise > 0.0:
+            snr_db = 10.0 * np.log10(max(sc, 1e-30) / noise)
+            share = min(max((snr_db - fast[1]) / (fast[2] - fast[1]), 0.0), 1.0)
+        b = np.float32(b + share * (fast[0] - b))
     for k in range(n_bins):
         c = xi[k] * xj[k].conjugate()
         sm[k] += b * (c - sm[k])
@@ -132,9 +157,12 @@ def _pair_spectrum(xi, xj, oi, oj, phi, sm, g, scratch, a, b, mode, update, phi_
         scratch[k] = m2
         peak2 = m2 if m2 > peak2 else peak2
     if update and a != 0.0:   # a = 0 on speech frames: the average stays as it is
+        l1 = 0.0
         for k in range(n_bins):
             c = oi[k] * oj[k].conjugate()
             phi[k] += a * (c - phi[k])
+            l1 += abs(phi[k])
+        phi_l1[0] = l1
     eps = _EPS_REL * np.sqrt(peak2) + _TINY
     eps2 = eps * eps
     one = np.float32(1.0)
@@ -158,14 +186,17 @@ def _pair_spectrum(xi, xj, oi, oj, phi, sm, g, scratch, a, b, mode, update, phi_
                 numba.bool_[::1],         # its usable channels (M,)
                 numba.complex64[:, ::1],  # noise cross-power spectra (n_pairs, n_bins), state
                 numba.complex64[:, ::1],  # short-time cross-power spectra (n_pairs, n_bins), state
+                numba.float64[::1],       # sum over bins of |noise cross power| per pair (n_pairs,), state
                 numba.complex64[:, ::1],  # cross work (n_pairs, n_bins)
                 numba.float32[:, ::1],    # correlation work (n_pairs, n_fft)
+                numba.float32[:, ::1],    # magnitude work (M, n_bins)
                 numba.float64[::1],       # parameters
                 numba.float64[:, ::1], numba.float64[:, ::1],  # peak tdoa, value (n_pairs, n_peaks)
                 numba.bool_[::1]),        # usable channels (M,), output
     cache=True, nogil=True, error_model="numpy",
 )
-def _frame(spectra, valid, old, old_usable, noise, smooth, cross, corr, params, peak_tdoa, peak_value, usable):
+def _frame(spectra, valid, old, old_usable, noise, smooth, noise_l1, cross, corr, mag, params, peak_tdoa,
+           peak_value, usable):
     """One frame: noise cross-power removal and update (from the delayed frame ``old``), PHAT, batched irfft,
     N best peaks per pair."""
     n_bins, m = spectra.shape
@@ -176,8 +207,9 @@ def _frame(spectra, valid, old, old_usable, noise, smooth, cross, corr, params, 
     if old.shape[0] != m or old.shape[1] != n_bins or old_usable.shape[0] != m:
         return _BAD_SPECTRA_SHAPE
     spectra, valid, noise, cross = borrowed(spectra), borrowed(valid), borrowed(noise), borrowed(cross)
-    smooth, old, old_usable = borrowed(smooth), borrowed(old), borrowed(old_usable)
+    smooth, old, old_usable, noise_l1 = borrowed(smooth), borrowed(old), borrowed(old_usable), borrowed(noise_l1)
     corr, peak_tdoa, peak_value, usable = borrowed(corr), borrowed(peak_tdoa), borrowed(peak_value), borrowed(usable)
+    mag = borrowed(mag)
     spec = spectra.T
     max_lag = int(params[_P_MAX_LAG])
     rate_hz = params[_P_RATE_HZ]
@@ -186,8 +218,16 @@ def _frame(spectra, valid, old, old_usable, noise, smooth, cross, corr, params, 
     update = params[_P_UPDATE] != 0.0
     b = np.float32(params[_P_SMOOTH])
     phi_scale = np.float32(params[_P_NOISE_SCALE])
+    fast = (np.float32(params[_P_SMOOTH_FAST]), params[_P_FAST_LO_DB], params[_P_FAST_HI_DB])
     for i in range(m):
         usable[i] = _channel_ok(spec[i], valid[i])
+    if fast[0] > b and mode != 0:
+        if mag.shape[0] != m or mag.shape[1] != n_bins:
+            return _BAD_SPECTRA_SHAPE
+        for i in range(m):
+            if usable[i]:
+                for k in range(n_bins):
+                    mag[i, k] = abs(spec[i, k])
     p = 0
     for i in range(m - 1):
         xi = spec[i]
@@ -195,7 +235,8 @@ def _frame(spectra, valid, old, old_usable, noise, smooth, cross, corr, params, 
             g = cross[p]
             if usable[i] and usable[j]:
                 _pair_spectrum(xi, spec[j], old[i], old[j], noise[p], smooth[p], g, corr[p], a, b, mode,
-                               update and old_usable[i] and old_usable[j], phi_scale)
+                               update and old_usable[i] and old_usable[j], phi_scale, fast, noise_l1[p:p + 1],
+                               mag[i], mag[j])
             else:
                 g[:] = 0.0
             p += 1
@@ -255,6 +296,13 @@ class NoiseAwareGcc:
         Time constant of the short-time average of every pair's cross-power spectrum that the noise is removed
         from (0: each frame alone, the paper's eq. 4). A few frames of the same talker give a much steadier
         peak than one in reverberation and noise; it must stay short against a moving talker and a turn.
+    fast_smoothing_time_constant_s : float, optional
+        A shorter time constant for frames whose cross power stands well above the noise's: the average moves
+        from ``smoothing_time_constant_s`` to this one as a pair's frame cross power rises from
+        ``FAST_SNR_DB[0]`` to ``FAST_SNR_DB[1]`` above the noise cross power (and while no noise was averaged
+        yet). A smoothed peak lags a moving talker by about the time constant times its TDOA rate, and the
+        track's rate then lags too; where the talker stands clear of the noise it does not need the average.
+        None (default): one time constant.
     noise_delay_s : float
         The noise average takes each frame this long after it was heard, weighted by ``1 - max p`` over the
         frames since: a talker's onset, heard before the speech detector fires, then never enters it (0: each
@@ -264,7 +312,7 @@ class NoiseAwareGcc:
     def __init__(self, n_channels: int, *, n_fft: int, sample_rate_hz: float, hop_s: float,
                  max_tdoa_s: float, n_peaks: int = 3, weighting: Weighting = "subtract",
                  noise_time_constant_s: float = 1.0, smoothing_time_constant_s: float = 0.0,
-                 noise_delay_s: float = 0.0) -> None:
+                 fast_smoothing_time_constant_s: float | None = None, noise_delay_s: float = 0.0) -> None:
         if int(n_channels) != n_channels or n_channels < 2:
             raise ValueError(f"{n_channels=} must be an integer >= 2")
         if int(n_fft) != n_fft or n_fft < 8:
@@ -299,6 +347,14 @@ class NoiseAwareGcc:
         self.smoothing_time_constant_s = float(smoothing_time_constant_s)
         self._params[_P_SMOOTH] = (1.0 if smoothing_time_constant_s == 0
                                    else 1.0 - math.exp(-hop_s / smoothing_time_constant_s))
+        fast = fast_smoothing_time_constant_s
+        if fast is not None and not (np.isfinite(fast) and 0 <= fast <= smoothing_time_constant_s):
+            raise ValueError(f"fast_smoothing_time_constant_s={fast} must be in 0..smoothing_time_constant_s")
+        self.fast_smoothing_time_constant_s = None if fast is None else float(fast)
+        # off (fast = slow): the kernel skips the test
+        self._params[_P_SMOOTH_FAST] = (self._params[_P_SMOOTH] if fast is None
+                                        else 1.0 if fast == 0 else 1.0 - math.exp(-hop_s / fast))
+        self._params[_P_FAST_LO_DB], self._params[_P_FAST_HI_DB] = FAST_SNR_DB
         if not (np.isfinite(noise_delay_s) and noise_delay_s >= 0):
             raise ValueError(f"{noise_delay_s=} must be finite and >= 0")
         self.noise_delay_frames = int(round(noise_delay_s / hop_s))
@@ -310,8 +366,10 @@ class NoiseAwareGcc:
         self._ring_pos = 0
         self._noise = np.zeros((self.n_pairs, self.n_bins), np.complex64)
         self._smooth = np.zeros((self.n_pairs, self.n_bins), np.complex64)
+        self._noise_l1 = np.zeros(self.n_pairs)   # sum over bins of |noise cross power|, per pair
         self._cross = np.zeros((self.n_pairs, self.n_bins), np.complex64)
         self._corr = np.zeros((self.n_pairs, self.n_fft), np.float32)
+        self._mag = np.zeros((self.n_channels, self.n_bins), np.float32)
         self._usable = np.zeros(self.n_channels, np.bool_)
         self._all_valid = np.ones(self.n_channels, np.bool_)
         self.n_noise_frames = 0.0   # effective number of non-speech frames averaged so far
@@ -322,6 +380,7 @@ class NoiseAwareGcc:
         """Forget the noise and short-time cross-power spectra."""
         self._noise[:] = 0.0
         self._smooth[:] = 0.0
+        self._noise_l1[:] = 0.0
         self._ring_usable[:] = False
         self._ring_p = [1.0] * len(self._ring_p)
         self.n_noise_frames = 0.0
@@ -400,8 +459,8 @@ class NoiseAwareGcc:
                 self._params[_P_SPEECH] = 1.0
         else:
             old, old_usable = spectra.T, self._usable   # the kernel sets usable before it uses it
-        code = _frame(spectra, valid, old, old_usable, self._noise, self._smooth, self._cross, self._corr,
-                      self._params, peak_tdoa, peak_value, self._usable)
+        code = _frame(spectra, valid, old, old_usable, self._noise, self._smooth, self._noise_l1, self._cross,
+                      self._corr, self._mag, self._params, peak_tdoa, peak_value, self._usable)
         if code == _BAD_SPECTRA_SHAPE:
             raise ValueError(f"spectra.shape={spectra.shape} must be (n_bins, n_channels)="
                              f"{(self.n_bins, self.n_channels)}")

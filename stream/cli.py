@@ -31,6 +31,9 @@ def _add_engine_options(p: argparse.ArgumentParser) -> None:
     g.add_argument("--gcc-smoothing-s", type=float,
                    help="short-time average of the cross-power spectra before the noise removal, seconds "
                         "(default 0.1; 0: every frame alone)")
+    g.add_argument("--gcc-fast-smoothing-s", type=float,
+                   help="the same average where a pair's frame stands 15-30 dB above the noise cross power, "
+                        "seconds (default 0.03: a moving talker clear of the noise is followed closely)")
     g.add_argument("--noise-delay-s", type=float,
                    help="a frame joins the noise cross-power average this late, and only if no speech was heard "
                         "since (default 0.25: a talker's first words, before the detector fires, stay out of it)")

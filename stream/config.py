@@ -67,6 +67,7 @@ class EngineConfig:
     noise_time_constant_s: float = 1.0             # noise cross-power average over non-speech frames
     noise_delay_s: float = 0.25                    # a frame joins the noise average this late, if no speech came since
     gcc_smoothing_s: float = 0.1                   # short-time cross-power average before the noise removal (0: off)
+    gcc_fast_smoothing_s: float = 0.03             # ... where the frame stands 15-30 dB above the noise (at most gcc_smoothing_s)
     track_tdoa_std_s: float = 1e-4                 # each track's TDOA noise
     switch_ratio: float = 1.5                      # activity ratio that moves the beam to another talker
     activity_time_constant_s: float = 0.4          # talker activity average over speech frames
@@ -131,6 +132,8 @@ class EngineConfig:
             raise ConfigError(f"n_peaks={self.n_peaks} must be an integer in 1..8")
         if not (math.isfinite(self.gcc_smoothing_s) and 0 <= self.gcc_smoothing_s <= 2):
             raise ConfigError(f"gcc_smoothing_s={self.gcc_smoothing_s} must be in 0..2 seconds")
+        if not (math.isfinite(self.gcc_fast_smoothing_s) and 0 <= self.gcc_fast_smoothing_s <= 2):
+            raise ConfigError(f"gcc_fast_smoothing_s={self.gcc_fast_smoothing_s} must be in 0..2 seconds")
         if not (math.isfinite(self.noise_delay_s) and 0 <= self.noise_delay_s <= 2):
             raise ConfigError(f"noise_delay_s={self.noise_delay_s} must be in 0..2 seconds")
         for name in ("noise_time_constant_s", "track_tdoa_std_s", "activity_time_constant_s", "forget_after_s"):

@@ -301,6 +301,7 @@ class Pipeline:
                 self.n_devices, n_fft=config.frame_samples, sample_rate_hz=fs, hop_s=config.hop_samples / fs,
                 max_tdoa_s=config.max_tdoa_s, n_peaks=config.n_peaks, weighting=config.gcc_weighting,
                 noise_time_constant_s=config.noise_time_constant_s, smoothing_time_constant_s=config.gcc_smoothing_s,
+                fast_smoothing_time_constant_s=min(config.gcc_fast_smoothing_s, config.gcc_smoothing_s),
                 noise_delay_s=config.noise_delay_s)
             self.estimator = self.tracker = make_estimator(config, self.n_devices, device_names)
             if speech is None:

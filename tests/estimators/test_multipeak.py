@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import scipy.signal
 
 import beamform
 from estimators import NoiseAwareGcc, pairs
@@ -158,3 +159,63 @@ def test_a_late_speech_detector_leaks_the_talker_into_the_noise_average_unless_t
     assert leak[0.25] < 0.3 * leak[0.0], leak
     with pytest.raises(ValueError, match="noise_delay_s"):
         NoiseAwareGcc(m, n_fft=N_FFT, sample_rate_hz=FS, hop_s=HOP / FS, max_tdoa_s=0.004, noise_delay_s=-1)
+
+
+def _moving_talker(seed: int, *, noise_gain: float, samples_per_hop: float = 0.5, seconds: float = 4.0):
+    """A talker (noise low-passed at 1 kHz, as voiced speech is mostly: a broad correlation peak; on/off every
+    0.1 s) whose delay at device 1 grows by ``samples_per_hop`` every hop
+    (about 2 ms/s at 0.5: a walking talker) and a stationary white noise source ``noise_gain`` below it, at
+    devices 0, 1, 2 (the talker's delays 0, d(t), 5; the noise's 0, -7, 3). Returns the signals, the per-hop
+    activity and the talker's pair (0, 1) TDOA per hop, in samples."""
+    rng = np.random.default_rng(seed)
+    n_hops = int(seconds * FS) // HOP
+    n = n_hops * HOP
+    pad = 400
+    talker = scipy.signal.sosfilt(scipy.signal.butter(4, 1000, fs=FS, output="sos"), rng.standard_normal(n + 2 * pad))
+    talker *= np.repeat(rng.random(n // 1600 + 2) > 0.4, 1600)[:n + 2 * pad] / np.std(talker)
+    noise = rng.standard_normal(n + 2 * pad)
+    x = np.zeros((n, 3), np.float32)
+    d1 = np.floor(np.arange(n_hops) * samples_per_hop).astype(int)
+    for k in range(n_hops):
+        seg = slice(k * HOP, (k + 1) * HOP)
+        for dev, dt, dn in ((0, 0, 0), (1, d1[k], -7), (2, 5, 3)):
+            idx = np.arange(k * HOP, (k + 1) * HOP) + pad
+            x[seg, dev] = talker[idx - dt] + noise_gain * noise[idx - dn]
+    x += 1e-4 * rng.standard_normal(x.shape).astype(np.float32)
+    active = np.array([np.any(talker[pad + k * HOP:pad + (k + 1) * HOP] != 0) for k in range(n_hops)])
+    return x, active, -d1.astype(float)   # pair (0, 1): toa_0 - toa_1
+
+
+@pytest.mark.parametrize("noise_gain, faster", [(0.01, True), (0.3, False)])
+def test_fast_smoothing_follows_a_moving_talker_that_stands_clear_of_the_noise(noise_gain, faster):
+    """The short-time average lags a moving talker's peak by about its time constant times the TDOA rate.
+    ``fast_smoothing_time_constant_s`` shortens it where the frame's cross power is 15-30 dB above the noise's:
+    a talker 40 dB above the noise is followed with less lag; one 10 dB above it gets the slow average,
+    exactly as without the option."""
+    x, active, tdoa01 = _moving_talker(5, noise_gain=noise_gain)
+    lag, peaks = {}, {}
+    for fast in (None, 0.02):
+        stft = beamform.StreamingStft(3, frame_samples=N_FFT, hop_samples=HOP)
+        gcc = NoiseAwareGcc(3, n_fft=N_FFT, sample_rate_hz=FS, hop_s=HOP / FS, max_tdoa_s=0.01,
+                            smoothing_time_constant_s=0.1, fast_smoothing_time_constant_s=fast)
+        top = []
+        for k in range(len(active)):
+            # the frame (4 hops) holds the talker if any of its hops does: the noise average takes only noise
+            t, _ = gcc.process(stft.process(x[k * HOP:(k + 1) * HOP]),
+                               speech_probability=float(active[max(k - 3, 0):k + 1].any()))
+            top.append(t[0, 0] * FS)
+        # frames of the talker, from 1 s on, where the frame (1024 samples, 4 hops) holds one delay at most
+        # two samples old: the frame's centre is 2 hops back
+        frames = [k for k in range(int(1.0 * FS / HOP), len(active)) if active[k - 3:k + 1].all()]
+        err = np.array([top[k] - tdoa01[k - 2] for k in frames])
+        lag[fast] = float(np.median(err))
+        peaks[fast] = np.array(top)
+    if faster:
+        # the talker's delay falls: a lagging peak sits above it
+        assert lag[None] > 0.6 and lag[0.02] < 0.4 * lag[None], lag
+    else:   # the same peaks once a noise average exists (before it, the fast one) and the start is forgotten
+        start = int(1.0 * FS / HOP)
+        np.testing.assert_allclose(peaks[0.02][start:], peaks[None][start:], atol=1e-3)
+    with pytest.raises(ValueError, match="fast_smoothing"):
+        NoiseAwareGcc(3, n_fft=N_FFT, sample_rate_hz=FS, hop_s=HOP / FS, max_tdoa_s=0.004,
+                      smoothing_time_constant_s=0.1, fast_smoothing_time_constant_s=0.2)

@@ -241,4 +241,8 @@ def test_a_reference_that_hears_only_noise_is_left_out_and_the_others_are_aligne
     yb, _ = sf.read(tmp_path / "b" / "enhanced.wav", dtype="float32")
     n = min(len(ya), len(yb))
     mid = slice(2 * fs, n - fs)
-    assert np.corrcoef(ya[mid], yb[mid])[0, 1] > 0.999   # measured 0.99992
+    # measured 0.99993 with one 0.1 s cross-power average, 0.99714 since its time constant follows the pair's SNR:
+    # the speech detector's batch of 6 devices rounds differently from a batch of 5, the noise averages differ in
+    # the last digits, and the tracker's discrete steps (gates, births) carry that to TOAs up to 0.2 ms apart in
+    # some frames. Device 0's noise itself would not correlate at all.
+    assert np.corrcoef(ya[mid], yb[mid])[0, 1] > 0.995
