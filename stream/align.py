@@ -23,7 +23,7 @@ import numba
 import numpy as np
 
 from .messages import Block, FrameFlag
-from .offsets import SILENCE_RMS, coarse_offset, worker
+from .offsets import SILENCE_RMS, coarse_offset, joint_offsets, worker
 
 log = logging.getLogger(__name__)
 
@@ -291,6 +291,17 @@ class Aligner:
             out[d] = coarse_offset(ref, x, sample_rate_hz=self.sample_rate_hz, max_offset_s=self.max_offset_s)
         return out
 
+    def _joint(self, s0: int, found: dict[int, tuple[int, float]]) -> dict[int, tuple[int, float]]:
+        """``found``, or its offsets refined over every pair together when the pairwise ones disagree grossly
+        (:func:`~stream.offsets.joint_offsets`)."""
+        p = self.pivot
+        ref = self._bufs[p].data[s0:s0 + self.window_samples]
+        extra = int(self.max_offset_s * self.sample_rate_hz)
+        windows = {d: (self._bufs[d].data[s0:s0 + self.window_samples + extra], o, q)
+                   for d, (o, q) in found.items() if d != p}
+        joint = joint_offsets(ref, windows, sample_rate_hz=self.sample_rate_hz, min_quality=self.min_quality)
+        return {d: ((joint[d], q) if d in joint else (o, q)) for d, (o, q) in found.items()}
+
     @property
     def time_reference(self) -> int:
         """The device whose time the beam keeps: device 0, or :attr:`pivot` while device 0 is left out (its TOA is
@@ -332,6 +343,7 @@ class Aligner:
         found = self._offsets_against(0, s0)
         if len(found) >= 2 and 2 * self._n_clear(found) < len(found):
             found = self._choose_pivot(s0, found)
+        found = self._joint(s0, found)
         if self.pivot:   # device 0 is measured like any other device, against the pivot
             self.quality[0] = found[0][1]
             for m in self._group_of[0]:
