@@ -294,6 +294,33 @@ def summarise(rows: list[dict], estimators: list[str]) -> dict:
     return out
 
 
+def targets(rows: list[dict], est: str) -> dict:
+    """The issue's numbers (issue 9) for one estimator: each measured figure, its requirement and whether it is met.
+    SNR >= 5 dB unless said; medians over scenes (the TOA share is each scene's share of scored frames)."""
+    hi = [r[est] for r in rows if r["snr_db"] >= 5]
+    by_snr = {snr: float(np.median([r[est]["si_sdr_db"] - r[est]["oracle_db"] for r in rows if r["snr_db"] == snr]))
+              for snr in sorted({r["snr_db"] for r in rows}) if snr >= 5}
+    lat = [v for r in rows for v in r[est].get("turn_latency_s", [])]
+    steer = max((r[est].get("noise_steer_s", 0.0), r["scene"]) for r in rows)
+    out = {
+        "minus_oracle_db_by_snr": {"value": {str(k): round(v, 3) for k, v in by_snr.items()}, "need": ">= -1 at every SNR",
+                                   "met": bool(by_snr) and min(by_snr.values()) >= -1.0},
+        "ge_best_single_share": {"value": round(float(np.mean([x["si_sdr_db"] >= x["best_single_db"] for x in hi])), 3),
+                                 "need": ">= 0.9"},
+        "toa_within_0p25ms_median_share": {"value": round(float(np.nanmedian([x["toa_within_0p25ms"] for x in hi])), 3),
+                                           "need": ">= 0.9"},
+        "max_noise_steer_s_any_scene": {"value": round(float(steer[0]), 3), "scene": steer[1], "need": "<= 1.0"},
+    }
+    out["ge_best_single_share"]["met"] = out["ge_best_single_share"]["value"] >= 0.9
+    out["toa_within_0p25ms_median_share"]["met"] = out["toa_within_0p25ms_median_share"]["value"] >= 0.9
+    out["max_noise_steer_s_any_scene"]["met"] = steer[0] <= 1.0
+    if lat:
+        out["turn_latency_s"] = {"value": {"median": round(float(np.median(lat)), 3), "max": round(float(np.max(lat)), 3)},
+                                 "need": "median <= 0.5, max <= 1.0",
+                                 "met": float(np.median(lat)) <= 0.5 and float(np.max(lat)) <= 1.0}
+    return out
+
+
 def main(argv=None) -> int:
     global DATA
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -352,9 +379,14 @@ def main(argv=None) -> int:
                 f"noise max {s[e]['max_noise_steer_s']:.2f} s"
                 + (f", turn {s[e]['turn_latency_median_s']:.2f}/{s[e]['turn_latency_max_s']:.2f} s"
                    if "turn_latency_median_s" in s[e] else "") for e in estimators))
+    goals = {e: targets(rows, e) for e in estimators}
+    for e, g in goals.items():
+        print(f"{e}: issue 9's numbers: " + "; ".join(
+            f"{k} {v['value']} (need {v['need']}{'' if 'scene' not in v else ', ' + v['scene']}): "
+            f"{'met' if v['met'] else 'NOT met'}" for k, v in g.items()))
     print(json.dumps({"benchmark": "scenes", "seed": args.seed, "n_scenes": len(rows), "overrides": overrides,
-                      "seconds": round(time.perf_counter() - t0, 1), "summary": summary, "scenes": rows},
-                     default=float))
+                      "seconds": round(time.perf_counter() - t0, 1), "summary": summary, "targets": goals,
+                      "scenes": rows}, default=float))
     return 0
 
 

@@ -131,7 +131,7 @@ class Aligner:
     deadline_s : float or None
         A device that delivered nothing for this long (wall clock) while the others did is late: the blocks it
         lacks go out without it (invalid, zeros; one sentence) and it is back as soon as its samples come in
-        time. A replay as fast as possible is never late (any split of the input gives the same blocks). None:
+        time. A replay as fast as possible passes None (its output must not depend on the machine's load). None:
         wait for every device (a stalled device then stalls the stream).
     recheck_delay_s : float
         A re-check runs in a child process (a long correlation must not stall the audio path; a thread

@@ -5,6 +5,7 @@ the report says what happened in one sentence.
 """
 from __future__ import annotations
 
+import dataclasses
 import gc
 import logging
 import platform
@@ -253,7 +254,12 @@ def run_stream(source, out_dir: str | Path, *, config: EngineConfig, fixture: Fi
                 report["arrays"] = layout.report()
             calibrator = make_calibrator(cfg, len(layout.channels), out, device_names=layout.names,
                                          solver=solver, on_geometry=on_geometry, live=report["live"], layout=layout)
-            pipeline = Pipeline(cfg, layout.sample_rates_hz, keep_input=keep, calibrator=calibrator,
+            # a replay as fast as possible has every device's audio at hand: a wall-clock deadline there would only
+            # make the output depend on the machine's load (a re-check or the first alignment that takes over
+            # the deadline, on a loaded machine, left devices out of blocks)
+            unpaced = not src.live and getattr(src, "speed", None) is None
+            pipeline = Pipeline(dataclasses.replace(cfg, device_deadline_s=None) if unpaced else cfg,
+                                layout.sample_rates_hz, keep_input=keep, calibrator=calibrator,
                                 device_names=layout.names, speech=speech, history_cap=history_cap,
                                 clock_groups=layout.clock_groups)
             wav = sinks.WavSink(out / "enhanced.wav", sample_rate_hz=cfg.working_rate_hz,
