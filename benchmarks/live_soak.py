@@ -138,12 +138,14 @@ def run(name: str, rate: int, frame: int, hop: int, period: int, seconds: float,
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--minutes", type=float, default=10.0, help="soak run (8 ch, 48 kHz)")
-    ap.add_argument("--cpu-minutes", type=float, default=2.0, help="CPU run (8 dev, 16 kHz, hop 128)")
+    ap.add_argument("--minutes", type=float, default=10.0, help="soak run (8 ch, 48 kHz; 0: skip it)")
+    ap.add_argument("--cpu-minutes", type=float, default=2.0, help="CPU run (8 dev, 16 kHz, hop 128; 0: skip it)")
     ap.add_argument("--estimator", help="the engine's TOA estimator (default: live's, the tracker)")
     args = ap.parse_args(argv)
-    results = [run("cpu", 16000, 512, 128, 128, 60 * args.cpu_minutes, args.estimator),
-               run("soak", 48000, 4096, 1024, 1024, 60 * args.minutes, args.estimator)]
+    if args.minutes < 0 or args.cpu_minutes < 0 or not (args.minutes or args.cpu_minutes):
+        ap.error("--minutes and --cpu-minutes must be >= 0, and one of them > 0")
+    results = ([run("cpu", 16000, 512, 128, 128, 60 * args.cpu_minutes, args.estimator)] if args.cpu_minutes else []) \
+        + ([run("soak", 48000, 4096, 1024, 1024, 60 * args.minutes, args.estimator)] if args.minutes else [])
     for r in results:
         print(f"{r['config']:>4}: {r['n_devices']} devices at {r['rate_hz']} Hz, {r['frame_samples']}/{r['hop_samples']}, "
               f"{r['estimator']}, "
