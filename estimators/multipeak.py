@@ -125,20 +125,20 @@ def _channel_ok(x, valid):
 
 
 @_jit
-def _pair_spectrum(xi, xj, oi, oj, phi, sm, g, scratch, a, b, mode, update, phi_scale, fast, phi_l1, mi, mj):
+def _pair_spectrum(xi, xj, oi, oj, phi, sm, g, scratch, a, b, mode, update, phi_scale, adapt, fast, phi_l1, mi, mj):
     """One pair's weighted cross spectrum into ``g`` (module doc): the short-time average ``sm`` of
     ``X_i X_j^*`` (moved by ``b``; ``b = 1``: this frame only) minus the noise cross power ``phi`` (for
     "phat": this frame's ``X_i X_j^*`` alone), optional per-bin weight, PHAT normalisation; then the noise
     average moves towards the delayed frame's ``O_i O_j^*`` (``oi``, ``oj``) by ``a``. ``phi_scale`` undoes the
     average's start-up bias (it starts at 0). ``scratch`` (>= n_bins floats) holds |G|^2.
 
-    ``fast = (b_fast, lo_db, hi_db)`` with ``b_fast > b``: ``b`` moves towards ``b_fast`` as the frame's cross
+    ``adapt``: ``b`` moves towards ``fast = (b_fast, lo_db, hi_db)``'s ``b_fast`` as the frame's cross
     power ``sum_k |X_i X_j^*|`` rises from ``lo_db`` to ``hi_db`` above the noise's (``phi_scale * phi_l1[0]``,
     ``phi_l1[0] = sum_k |phi_k|``, kept up to date here when the noise average moves; ``mi``, ``mj``: the
     channels' magnitudes ``|X_i|``, ``|X_j|``)."""
     n_bins = xi.shape[0]
     peak2 = np.float32(0.0)
-    if fast[0] > b and mode != 0:
+    if adapt:
         sc = 0.0
         for k in range(n_bins):
             sc += mi[k] * mj[k]
@@ -206,6 +206,8 @@ def _frame(spectra, valid, old, old_usable, noise, smooth, noise_l1, cross, corr
         return _BAD_VALID_SHAPE
     if old.shape[0] != m or old.shape[1] != n_bins or old_usable.shape[0] != m:
         return _BAD_SPECTRA_SHAPE
+    if mag.shape[0] != m or mag.shape[1] != n_bins:
+        return _BAD_SPECTRA_SHAPE
     spectra, valid, noise, cross = borrowed(spectra), borrowed(valid), borrowed(noise), borrowed(cross)
     smooth, old, old_usable, noise_l1 = borrowed(smooth), borrowed(old), borrowed(old_usable), borrowed(noise_l1)
     corr, peak_tdoa, peak_value, usable = borrowed(corr), borrowed(peak_tdoa), borrowed(peak_value), borrowed(usable)
@@ -221,9 +223,8 @@ def _frame(spectra, valid, old, old_usable, noise, smooth, noise_l1, cross, corr
     fast = (np.float32(params[_P_SMOOTH_FAST]), params[_P_FAST_LO_DB], params[_P_FAST_HI_DB])
     for i in range(m):
         usable[i] = _channel_ok(spec[i], valid[i])
-    if fast[0] > b and mode != 0:
-        if mag.shape[0] != m or mag.shape[1] != n_bins:
-            return _BAD_SPECTRA_SHAPE
+    adapt = fast[0] > b and mode != 0   # the average's time constant follows each pair's SNR this frame
+    if adapt:
         for i in range(m):
             if usable[i]:
                 for k in range(n_bins):
@@ -235,7 +236,7 @@ def _frame(spectra, valid, old, old_usable, noise, smooth, noise_l1, cross, corr
             g = cross[p]
             if usable[i] and usable[j]:
                 _pair_spectrum(xi, spec[j], old[i], old[j], noise[p], smooth[p], g, corr[p], a, b, mode,
-                               update and old_usable[i] and old_usable[j], phi_scale, fast, noise_l1[p:p + 1],
+                               update and old_usable[i] and old_usable[j], phi_scale, adapt, fast, noise_l1[p:p + 1],
                                mag[i], mag[j])
             else:
                 g[:] = 0.0

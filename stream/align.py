@@ -279,27 +279,27 @@ class Aligner:
                 self.messages.append(msg)
                 log.warning(msg)
 
+    def _windows(self, p: int, s0: int) -> tuple[np.ndarray, dict[int, np.ndarray]]:
+        """Device ``p``'s first alignment window, and the first device of every other clock group's window with
+        the search beyond it (views of the buffers)."""
+        extra = int(self.max_offset_s * self.sample_rate_hz)
+        return (self._bufs[p].data[s0:s0 + self.window_samples],
+                {d: self._bufs[d].data[s0:s0 + self.window_samples + extra] for d in range(self.n_devices)
+                 if self.clock_groups[d] == d and d != p})   # p is the first device of its group
+
     def _offsets_against(self, p: int, s0: int) -> dict[int, tuple[int, float]]:
         """``{device: (offset, quality)}`` of the first device of every other clock group against device ``p``'s
         first alignment window (offsets of ``p``'s own clock: ``p`` at 0)."""
-        ref = self._bufs[p].data[s0:s0 + self.window_samples].copy()
-        out = {}
-        for d in range(self.n_devices):
-            if self.clock_groups[d] != d or d == p:   # p is the first device of its group
-                continue
-            x = self._bufs[d].data[s0:s0 + self.window_samples + int(self.max_offset_s * self.sample_rate_hz)]
-            out[d] = coarse_offset(ref, x, sample_rate_hz=self.sample_rate_hz, max_offset_s=self.max_offset_s)
-        return out
+        ref, windows = self._windows(p, s0)
+        return {d: coarse_offset(ref, x, sample_rate_hz=self.sample_rate_hz, max_offset_s=self.max_offset_s)
+                for d, x in windows.items()}
 
     def _joint(self, s0: int, found: dict[int, tuple[int, float]]) -> dict[int, tuple[int, float]]:
         """``found``, or its offsets refined over every pair together when the pairwise ones disagree grossly
         (:func:`~stream.offsets.joint_offsets`)."""
-        p = self.pivot
-        ref = self._bufs[p].data[s0:s0 + self.window_samples]
-        extra = int(self.max_offset_s * self.sample_rate_hz)
-        windows = {d: (self._bufs[d].data[s0:s0 + self.window_samples + extra], o, q)
-                   for d, (o, q) in found.items() if d != p}
-        joint = joint_offsets(ref, windows, sample_rate_hz=self.sample_rate_hz, min_quality=self.min_quality)
+        ref, windows = self._windows(self.pivot, s0)
+        joint = joint_offsets(ref, {d: (x, *found[d]) for d, x in windows.items()},
+                              sample_rate_hz=self.sample_rate_hz, min_quality=self.min_quality)
         return {d: ((joint[d], q) if d in joint else (o, q)) for d, (o, q) in found.items()}
 
     @property

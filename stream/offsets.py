@@ -121,6 +121,14 @@ def coarse_offset(x_ref: np.ndarray, x: np.ndarray, *, sample_rate_hz: float, ma
     return fine, quality
 
 
+def _phat_xcorr(a_spectrum: np.ndarray, b_spectrum: np.ndarray, n_fft: int) -> np.ndarray:
+    """Circular PHAT cross-correlation of two signals from their rfft spectra (length ``n_fft``): peaks at lag
+    ``d`` (index ``d mod n_fft``) when ``b[m + d] = a[m]``."""
+    g = b_spectrum * np.conj(a_spectrum)
+    g /= np.abs(g) + 1e-12
+    return scipy.fft.irfft(g, n_fft)
+
+
 def refine_offset(x_ref: np.ndarray, x: np.ndarray, *, coarse_samples: int, search_samples: int) -> int:
     """Sample-accurate offset near ``coarse_samples`` by PHAT-weighted cross-correlation."""
     start_ref = max(0, -coarse_samples)
@@ -131,11 +139,7 @@ def refine_offset(x_ref: np.ndarray, x: np.ndarray, *, coarse_samples: int, sear
     a = x_ref[start_ref:start_ref + n].astype(np.float32)
     b = x[start:start + n].astype(np.float32)
     n_fft = scipy.fft.next_fast_len(n + search_samples)
-    A = scipy.fft.rfft(a, n_fft)
-    B = scipy.fft.rfft(b, n_fft)
-    G = B * np.conj(A)
-    G /= np.abs(G) + 1e-12
-    r = scipy.fft.irfft(G, n_fft)
+    r = _phat_xcorr(scipy.fft.rfft(a, n_fft), scipy.fft.rfft(b, n_fft), n_fft)
     lags = np.r_[np.arange(0, search_samples + 1), np.arange(-search_samples, 0)]
     vals = np.r_[r[: search_samples + 1], r[n_fft - search_samples:]]
     # if x[n + coarse + d] = x_ref[n] then b[m + d] = a[m]: the correlation peaks at lag d
@@ -180,9 +184,7 @@ def joint_refine(ref: np.ndarray, windows: dict[int, tuple[np.ndarray, int]], *,
     corr = [[None] * m for _ in range(m)]
     for i in range(m):
         for j in range(i + 1, m):
-            g = spectra[j][:k_dec] * np.conj(spectra[i][:k_dec])
-            g /= np.abs(g) + 1e-12
-            r = scipy.fft.irfft(g, n_dec)
+            r = _phat_xcorr(spectra[i][:k_dec], spectra[j][:k_dec], n_dec)
             corr[i][j] = np.r_[r[n_dec - 2 * Ld:], r[:2 * Ld + 1]]
             corr[j][i] = corr[i][j][::-1]
     delta = np.zeros(m, np.int64)   # each window's move from its pairwise offset, in steps (reference: index 0)
@@ -206,9 +208,7 @@ def joint_refine(ref: np.ndarray, windows: dict[int, tuple[np.ndarray, int]], *,
     for k, d in enumerate(devices):
         lag = int(moves[k])
         if q > 1:   # the sample, within a step, where the full-band correlation with the reference peaks
-            g = spectra[k + 1] * np.conj(spectra[0])
-            g /= np.abs(g) + 1e-12
-            r = scipy.fft.irfft(g, n_fft)
+            r = _phat_xcorr(spectra[0], spectra[k + 1], n_fft)
             near = np.arange(lag - q + 1, lag + q)
             lag = int(near[int(np.argmax(r[near % n_fft]))])
         out[d] = offs[d] + lag

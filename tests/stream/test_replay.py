@@ -223,9 +223,9 @@ def test_a_replay_as_fast_as_possible_does_not_depend_on_how_loaded_the_machine_
     import time as _time
 
     import stream.align
+    from tests.conftest import REPO_FIXTURES
 
-    from pathlib import Path
-    folder = Path(__file__).resolve().parents[2] / "replay_fixtures" / "meeting_table"
+    folder = REPO_FIXTURES / "meeting_table"
     # a 2 s window: the first alignment comes mid-stream, with every device still delivering
     cfg = EngineConfig(plots=False, progress=False, align_window_s=2.0, max_offset_s=1.0)
     run_replay([folder], tmp_path / "a", config=cfg)
