@@ -219,3 +219,72 @@ def test_fast_smoothing_follows_a_moving_talker_that_stands_clear_of_the_noise(n
     with pytest.raises(ValueError, match="fast_smoothing"):
         NoiseAwareGcc(3, n_fft=N_FFT, sample_rate_hz=FS, hop_s=HOP / FS, max_tdoa_s=0.004,
                       smoothing_time_constant_s=0.1, fast_smoothing_time_constant_s=0.2)
+
+
+def test_the_compiled_frame_is_the_module_docs_formulas():
+    """Frame by frame against numpy on the module doc's formulas (short-time average with the SNR-adaptive
+    constant, noise removal and its update on non-speech frames, PHAT, irfft, the top peak)."""
+    m, n_fft, hop = 4, 256, 64
+    rng = np.random.default_rng(11)
+    x, active, _, _ = _two_sources(5, n_devices=m, seconds=1.5, noise_gain=1.0, talker_gain=2.0)
+    stft = beamform.StreamingStft(m, frame_samples=n_fft, hop_samples=hop)
+    gcc = NoiseAwareGcc(m, n_fft=n_fft, sample_rate_hz=FS, hop_s=hop / FS, max_tdoa_s=0.004, n_peaks=1,
+                        smoothing_time_constant_s=0.1, fast_smoothing_time_constant_s=0.02)
+    p_idx = pairs(m)
+    n_bins = n_fft // 2 + 1
+    alpha = 1 - np.exp(-hop / FS / 1.0)
+    b_slow, b_fast = 1 - np.exp(-hop / FS / 0.1), 1 - np.exp(-hop / FS / 0.02)
+    sm = np.zeros((len(p_idx), n_bins), complex)
+    phi = np.zeros((len(p_idx), n_bins), complex)
+    weight = 0.0
+    max_lag = int(0.004 * FS)
+    lags = np.r_[np.arange(-max_lag, 0) + n_fft, np.arange(0, max_lag + 1)]
+    for k in range(len(x) // hop):
+        X = stft.process(x[k * hop:(k + 1) * hop]).T.astype(complex)
+        speech = float(active[k // 4] if k // 4 < len(active) else 0.0) * float(rng.random() < 0.8)
+        tdoa, value = gcc.process(np.asfortranarray(X.T.astype(np.complex64)), speech_probability=speech)
+        scale = 1.0 / weight if weight > 1e-6 else 0.0
+        a = alpha * (1 - speech)
+        for p, (i, j) in enumerate(p_idx):
+            c = X[i] * X[j].conj()
+            noise = scale * np.abs(phi[p]).sum()
+            share = 1.0 if noise == 0 else np.clip(
+                (10 * np.log10(np.sum(np.abs(X[i]) * np.abs(X[j])) / noise) - 15.0) / 15.0, 0.0, 1.0)
+            b = b_slow + share * (b_fast - b_slow)
+            sm[p] += b * (c - sm[p])
+            g = sm[p] - scale * phi[p]
+            phi[p] += a * (c - phi[p])
+            eps = 1e-6 * np.abs(g).max()
+            r = np.fft.irfft(g / np.sqrt(np.abs(g) ** 2 + eps ** 2), n_fft)
+            top = lags[np.argmax(r[lags])]
+            lag = top - n_fft if top > n_fft // 2 else top
+            assert value[p, 0] == pytest.approx(r[top], rel=1e-3, abs=1e-4)
+            assert abs(tdoa[p, 0] * FS - lag) <= 0.5 + 1e-9
+        weight += a * (1 - weight)
+        np.testing.assert_allclose(gcc._smooth, sm, rtol=1e-4, atol=1e-4 * np.abs(sm).max())
+        np.testing.assert_allclose(gcc._noise, phi, rtol=1e-4, atol=1e-4 * max(np.abs(phi).max(), 1e-12))
+    assert 0 < sum(active) < len(active)
+
+
+@pytest.mark.parametrize("bad", ["nan_imag", "inf_real", "zeros"])
+def test_a_channel_with_a_non_finite_or_no_value_gives_its_pairs_nothing(bad):
+    m = 3
+    rng = np.random.default_rng(2)
+    spectra = np.asfortranarray((rng.standard_normal((N_FFT // 2 + 1, m))
+                                 + 1j * rng.standard_normal((N_FFT // 2 + 1, m))).astype(np.complex64))
+    col = spectra[:, 1]
+    if bad == "nan_imag":
+        col[7] = complex(1.0, np.nan)
+    elif bad == "inf_real":
+        col[N_FFT // 2] = complex(np.inf, 0.0)
+    else:
+        col[:] = 0.0
+    gcc = NoiseAwareGcc(m, n_fft=N_FFT, sample_rate_hz=FS, hop_s=HOP / FS, max_tdoa_s=0.004)
+    _, value = gcc.process(spectra, speech_probability=1.0)
+    has1 = (pairs(m) == 1).any(axis=1)
+    assert np.all(value[has1] == 0) and np.all(value[~has1, 0] > 0)
+    assert gcc.usable.tolist() == [True, False, True]
+    col[:] = 0.0
+    col[3] = complex(0.0, 1e-30)   # one tiny value: usable
+    gcc.process(spectra, speech_probability=1.0)
+    assert gcc.usable.all()
