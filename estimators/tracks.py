@@ -19,7 +19,15 @@ N best GCC-PHAT peaks of every pair (:class:`estimators.multipeak.NoiseAwareGcc`
   within ``confirm_window_s`` and deleted otherwise.
 - **Noise sources**: every ``noise_every_s`` the PHAT-weighted noise cross-power spectra (tracked on
   non-speech frames by :class:`~estimators.multipeak.NoiseAwareGcc`) give the delays of the persistent noise
-  sources; each consistent fit updates (or starts) a track labelled ``"noise"``.
+  sources; each consistent fit updates (or starts) a track labelled ``"noise"``. A source heard *alone* is
+  found sooner: on non-speech frames past a talker's tail a tentative noise track is born from the plain PHAT
+  peaks (as a talker's on speech frames) and confirmed ``"noise"`` when it is hit in ``quiet_confirm_share`` of
+  the non-speech frames of its first ``quiet_confirm_s`` (a speech frame before that ends it: a talker's onset,
+  heard before the detector fires, is far shorter); such a track follows its peaks on non-speech frames, and in
+  speech frames it takes its source's peaks after the talkers, so that no talker track is born on them though
+  the detector calls every frame speech while it sounds (a dish clatter fires Silero). It turns talker only
+  once the pauses are quiet of it. The noise spectra correct it when they agree on all devices but one (a
+  single pause's peaks may put one device on a reflection).
 - **Labels**: a track is ``"speech"`` when it was born and confirmed on speech frames; it becomes ``"noise"``
   when its activity does not follow speech presence: on non-speech frames (plain PHAT peaks) every track is
   checked, without an update, for its peaks (from 0.3 s after the last speech frame on, past a talker's
@@ -52,7 +60,8 @@ N best GCC-PHAT peaks of every pair (:class:`estimators.multipeak.NoiseAwareGcc`
   ``forget_after_s``. With no confirmed speech track nothing is steered (the caller outputs the average of the
   devices at their coarse alignment, or the reference device where a noise track sits there).
 
-On non-speech frames every track only predicts: no update and no birth comes from a frame without speech.
+On non-speech frames every talker track only predicts: no talker update and no talker birth comes from a frame
+without speech (only noise sources, above).
 Units: seconds throughout; TOA vectors relative to device 0 (``toa[0] = 0``), as :mod:`estimators.conventions`.
 """
 from __future__ import annotations
@@ -222,6 +231,10 @@ class Track:
     toa_sum_s: np.ndarray | None = None   # running sums for the TOA summary (hits only)
     toa_sq_sum_s2: np.ndarray | None = None
     hit_times_s: list = field(default_factory=list)   # recent hits of a tentative track
+    quiet_born: bool = False         # a tentative noise source, born on a non-speech frame
+    quiet_origin: bool = False       # a noise source found on non-speech frames (updated on them)
+    quiet_seen: int = 0              # its non-speech frames since birth, and its hits in them
+    quiet_hits: int = 0
     died_s: float | None = None
     death_reason: str = ""
 
@@ -267,6 +280,10 @@ class SourceTracker:
         Tracks kept at once (speech, tentative and noise).
     speech_threshold : float
         A frame with speech presence at least this is a speech frame.
+    quiet_confirm_s, quiet_confirm_share : float
+        A noise source born on non-speech frames is confirmed when hit in ``quiet_confirm_share`` of the
+        non-speech frames of its first ``quiet_confirm_s`` (module doc); ``quiet_confirm_s=None``: noise sources
+        come from the noise spectra only (the tracker before 2026-11-27).
     """
 
     latency_frames = 0   # causal: the steered TOA is the current frame's
@@ -279,7 +296,8 @@ class SourceTracker:
                  confirm_hits: int = 4, confirm_window_s: float = 0.3, forget_after_s: float = 30.0,
                  activity_time_constant_s: float = 0.4, switch_ratio: float = 1.5, same_source_s: float = 2e-4,
                  noise_every_s: float = 0.25, noise_quiet_activity: float = 0.3,
-                 max_rate_s_per_s: float = 3e-3) -> None:
+                 max_rate_s_per_s: float = 3e-3, quiet_confirm_s: float | None = 0.5,
+                 quiet_confirm_share: float = 0.7) -> None:
         if int(n_devices) != n_devices or n_devices < 2:
             raise ValueError(f"{n_devices=} must be an integer >= 2")
         if target not in ("active-talker", "nearest"):
@@ -317,6 +335,9 @@ class SourceTracker:
         self.quiet_skip_frames = max(1, int(round(0.3 / self.frame_period_s)))  # 0.3 s after speech: its tail
         self.noise_quiet_activity = float(noise_quiet_activity)
         self.max_rate_s_per_s = float(max_rate_s_per_s)
+        self.quiet_confirm_frames = (None if quiet_confirm_s is None
+                                     else max(1, int(round(quiet_confirm_s / self.frame_period_s))))
+        self.quiet_confirm_share = float(quiet_confirm_share)
         self.young_s = 3.0
         self._bin_s = 2.0 / self.sample_rate_hz
         self._n_bins = 2 * int(math.ceil(0.02 / self._bin_s)) + 1          # moves up to +-20 ms
@@ -446,6 +467,8 @@ class SourceTracker:
         self.gated = False
         if speech and n_ok:
             self.n_speech_frames += 1
+            for t in [t for t in self.tracks if t.quiet_born]:   # a noise source is confirmed in one pause
+                self._end(t, time_s, "not confirmed")
             hit_any = self._associate(peak_tdoa_s, peak_value, pair_ok, n_ok, time_s)
             if not hit_any or self.n_speech_frames % 4 == 0:
                 self._birth(peak_tdoa_s, peak_value, pair_ok, n_ok, usable, time_s)
@@ -457,6 +480,8 @@ class SourceTracker:
                 self._hold_still(t, quiet=self._quiet_frames >= self.quiet_skip_frames)
             if n_ok and self._quiet_frames >= self.quiet_skip_frames:   # past the talker's reverberant tail
                 self._quiet_check(peak_tdoa_s, peak_value, pair_ok, n_ok)
+                if self.quiet_confirm_frames is not None:
+                    self._quiet_sources(peak_tdoa_s, peak_value, pair_ok, n_ok, usable, time_s)
         if noise_peaks is not None and self.n_frames % self.noise_every_frames == 0:
             self._noise_update(*noise_peaks(), pair_ok, n_ok, usable, time_s)
         self._housekeeping(time_s)
@@ -487,6 +512,8 @@ class SourceTracker:
         min_pairs = max(2, int(math.ceil(self.min_pair_fraction * n_ok)))
         k, picked = np.empty(self.n_pairs, np.int64), np.empty(self.n_pairs, bool)
         for t in order:
+            if t.quiet_born:   # a noise candidate counts non-speech frames only
+                continue
             pred, gate = self._predicted(t)
             if t is self.steered and self._reanchor(t, peak_tdoa, peak_value, pred, pair_ok):
                 pred, gate = self._predicted(t)
@@ -635,8 +662,11 @@ class SourceTracker:
         if t.kind == "speech" and t.quiet_activity > max(self.noise_quiet_activity, t.speech_rate):
             t.kind = "noise"
             t.activity = 0.0
-        elif t.kind == "noise" and t.speech_rate > max(self.noise_quiet_activity, t.quiet_activity) + 0.1:
+        elif t.kind == "noise" and t.speech_rate > max(self.noise_quiet_activity, t.quiet_activity) + 0.1 and (
+                not t.quiet_origin or t.quiet_activity < self.noise_quiet_activity):
+            # a source found sounding in the pauses turns talker only once the pauses are quiet of it
             t.kind = "speech"
+            t.quiet_origin = False
 
     def _record_hit(self, t: Track, time_s: float, value: float) -> None:
         t.n_hits += 1
@@ -715,7 +745,7 @@ class SourceTracker:
             return None
         return np.concatenate([[0.0], sol]), keep
 
-    def _birth(self, peak_tdoa, peak_value, pair_ok, n_ok, usable, time_s) -> None:
+    def _birth(self, peak_tdoa, peak_value, pair_ok, n_ok, usable, time_s, *, quiet: bool = False) -> None:
         """A tentative track from the peaks no track took: hypotheses from each usable device's pairs with
         every other device (their best free peaks give one TOA vector each), the one most pairs support (any
         free peak within ``birth_max_residual_s``) refitted on its support (robust to pairs whose best peak is
@@ -762,6 +792,11 @@ class SourceTracker:
         if not t.kalman.initialised:
             self.tracks.remove(t)
             return
+        if quiet:
+            t.quiet_born = True
+            t.quiet_seen = t.quiet_hits = 1
+            t.n_hits = 1
+            return
         self._record_hit(t, time_s, float(peak_value[self._rows, k][keep].sum()) / n_ok)
 
     def _new_track(self, kind: TrackKind, time_s: float) -> Track:
@@ -787,6 +822,47 @@ class SourceTracker:
         if t is self.steered:
             self.steered = None
 
+    def _quiet_sources(self, peak_tdoa, peak_value, pair_ok, n_ok, usable, time_s) -> None:
+        """Non-speech frame past a talker's tail (plain PHAT peaks): noise sources are born here too. A source
+        heard when nobody speaks is a noise source, whatever the speech detector says later while it sounds
+        (a dish clatter fires it): a tentative noise track is born from the peaks no noise track explains and
+        is confirmed as ``"noise"`` when it was hit in ``quiet_confirm_share`` of the non-speech frames of its
+        first ``quiet_confirm_s`` (a talker's onset heard before the detector fires is far shorter); the noise
+        tracks found this way update with their peaks here. In speech frames a noise track then takes its
+        source's peaks after the talkers, so no talker track is born on them."""
+        used = np.zeros(peak_value.shape, bool)
+        min_pairs = max(2, int(math.ceil(self.min_pair_fraction * n_ok)))
+        k, picked = np.empty(self.n_pairs, np.int64), np.empty(self.n_pairs, bool)
+        for t in list(self.tracks):
+            if not (t.quiet_origin or t.quiet_born):
+                continue
+            pred, gate = self._predicted(t)
+            n_took = _pick_peaks(peak_tdoa, peak_value, pred, gate, used, pair_ok, self.min_peak_value, k, picked)
+            tdoa = peak_tdoa[self._rows, k]
+            took = self._consistent(tdoa, picked) if n_took >= min_pairs else picked
+            hit = int(took.sum()) >= min_pairs
+            if hit:
+                t.kalman.update(tdoa, np.where(took, peak_value[self._rows, k], 0.0))
+                hit = not t.kalman.gated
+                if hit:
+                    used[self._rows[took], k[took]] = True
+                    t.last_hit_s = time_s
+            if not t.quiet_born:
+                continue
+            t.quiet_seen += 1
+            t.quiet_hits += hit
+            if t.quiet_seen >= self.quiet_confirm_frames:
+                if t.quiet_hits >= self.quiet_confirm_share * t.quiet_seen:
+                    t.kind, t.quiet_born, t.quiet_origin = "noise", False, True
+                    t.confirmed_s = time_s
+                    t.n_hits = t.quiet_hits
+                    t.quiet_activity = 1.0   # heard all through the pauses so far
+                else:
+                    self._end(t, time_s, "not confirmed")
+        if not any(t.quiet_born for t in self.tracks):
+            self._used = used
+            self._birth(peak_tdoa, peak_value, pair_ok, n_ok, usable, time_s, quiet=True)
+
     def _noise_update(self, peak_tdoa, peak_value, correlation, pair_ok, n_ok, usable, time_s) -> None:
         """Noise sources from the PHAT of the noise cross-power spectra (best and second-best peaks): the
         averaged spectra of a reverberant noise give lower, wider peaks than one speech frame, so the fit
@@ -801,7 +877,11 @@ class SourceTracker:
             toa, keep = fit
             nearest = min((t for t in self.tracks if t.kind == "noise"),
                           key=lambda t: self._distance(toa, t.toa_s), default=None)
-            if nearest is not None and self._distance(toa, nearest.toa_s) < 3 * self.same_source_s:
+            # a source found on a single pause's frames may have one device on a reflection: the averaged spectra
+            # put it right (rather than start a second track of the same source that could wander off)
+            near = nearest is not None and (self._distance(toa, nearest.toa_s) < 3 * self.same_source_s or (
+                nearest.quiet_origin and int((np.abs(toa - nearest.toa_s) > 3 * self.same_source_s).sum()) <= 1))
+            if near:
                 t = nearest
                 # a direct correction: noise tracks are refreshed a few times per second
                 t.kalman._kf.x[:self.n_devices - 1] = toa[1:]

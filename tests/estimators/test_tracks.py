@@ -85,12 +85,14 @@ def test_a_pause_does_not_move_the_track_and_the_steered_talker_survives_it():
         tr.update(tdoa, value, speech_probability=1.0, usable=USABLE, time_s=k * DT)
     sid = tr.steered_id
     before = tr.steered.toa_s.copy()
-    for k in range(60, 160):   # 1.6 s of noise-only frames: predict only, no birth
+    for k in range(60, 160):   # 1.6 s of noise-only frames: the talker's track only predicts
         tdoa, value = _peaks([(NOISE, 0.7)], rng)
         toa = tr.update(tdoa, value, speech_probability=0.0, usable=USABLE, time_s=k * DT)
     assert tr.steered_id == sid
     assert np.max(np.abs(toa - before)) < 1e-4
-    assert not any(np.max(np.abs(t.toa_s - NOISE)) < 2.5e-4 for t in tr.tracks)
+    # what sounds alone in the pause is a noise source, never a talker
+    at_noise = [t for t in tr.tracks if np.max(np.abs(t.toa_s - NOISE)) < 2.5e-4]
+    assert at_noise and all(t.kind == "noise" for t in at_noise)
 
 
 def test_nearest_policy_picks_the_talker_heard_first_at_the_device():
@@ -265,3 +267,34 @@ def test_the_compiled_fit_equals_the_pseudo_inverse_for_any_set_of_pairs():
         n_disconnected += np.linalg.matrix_rank(h0[keep]) < 7 if keep.any() else 1
         np.testing.assert_allclose(tr._lstsq(tdoa, keep), want, rtol=0, atol=1e-15)
     assert 20 < n_disconnected < 280   # both paths ran
+
+
+@pytest.mark.parametrize("quiet_confirm_s", [0.5, None])
+def test_a_noise_heard_alone_before_the_talker_is_never_steered_though_the_detector_then_calls_it_speech(
+        quiet_confirm_s):
+    """A dish rack louder than the talker: 1 s of it alone (non-speech frames), then it and the talker together,
+    every frame "speech" (a clatter fires the detector, so no pause ever shows the noise alone again). The source
+    heard in the pause is a noise track from then on; the beam goes to the talker. Without the births on
+    non-speech frames (``quiet_confirm_s=None``, the tracker before 2026-11-27) the louder noise was a talker
+    track and the beam pointed at it."""
+    rng = np.random.default_rng(5)
+    tr = _tracker(quiet_confirm_s=quiet_confirm_s)
+    steered = []
+    for k in range(int(4.0 / DT)):
+        t = k * DT
+        alone = t < 1.0
+        sources = [(NOISE, 0.6)] + ([] if alone else [(TALKER_A, 0.35)])
+        tdoa, value = _peaks(sources, rng)
+        steered.append(tr.update(tdoa, value, speech_probability=0.0 if alone else 1.0, usable=USABLE,
+                                 time_s=t).copy())
+    steered = np.array(steered)
+    at_noise = np.all(np.abs(steered - NOISE) < 2.5e-4, axis=1)
+    at_talker = np.all(np.abs(steered - TALKER_A) < 2.5e-4, axis=1)
+    if quiet_confirm_s is None:
+        assert at_noise.sum() * DT > 1.0
+        return
+    assert not at_noise.any()
+    assert at_talker[int(1.5 / DT):].all()
+    noise = [t for t in tr.report()["tracks"] if t["kind"] == "noise"]
+    assert noise and noise[0]["confirmed_s"] < 1.0
+    assert np.max(np.abs(np.array(noise[0]["last_toa_s"]) - NOISE)) < 2.5e-4
