@@ -56,6 +56,7 @@ class LoopSource:
     """A seamless loop of a multi-device scene for ``duration_s``, as fast as possible (a Source)."""
 
     live = False
+    paced = False
 
     def __init__(self, audio: np.ndarray, duration_s: float, on_time=None) -> None:
         self.audio = audio

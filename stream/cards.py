@@ -362,6 +362,7 @@ class CardSource:
         self.close()
 
     live = True
+    paced = True
 
     @property
     def sample_rates_hz(self) -> list[float]:

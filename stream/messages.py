@@ -148,10 +148,13 @@ class Source(Protocol):
     delivering devices at different times and rates. ``active`` lists the devices that stream (their
     ``device_id`` is their index there), ``devices`` every one asked for (with the problems of those left
     out). ``stop()`` may be called from a signal handler: the iteration then ends each device's stream with
-    a ``LAST`` frame. ``live`` sources end only by ``stop()``; ``duration_s`` is None for them.
+    a ``LAST`` frame. ``live`` sources end only by ``stop()``; ``duration_s`` is None for them. ``paced``:
+    frames come at the pace of the audio (live, or a replay at a given speed), so a device that delivers nothing
+    for a while is late; False: as fast as possible, every device's audio at hand (no wall-clock deadline).
     """
 
     live: bool
+    paced: bool
     devices: Sequence
     active: Sequence
 

@@ -496,6 +496,7 @@ class NetSource:
     """
 
     live = True
+    paced = True
 
     def __init__(self, net: NetOptions, *, array: str = "default", expect: Sequence[str] = (),
                  discover_s: float = 5.0, jitter_s: float = 0.1, hold_s: float = 0.5, buffer_s: float = 10.0,

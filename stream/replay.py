@@ -157,6 +157,11 @@ class ReplaySource:
 
     live = False   # a replay ends when its files do; a stop() before that interrupts it
 
+    @property
+    def paced(self) -> bool:
+        """Whether blocks come at a given speed (else as fast as possible)."""
+        return self.speed is not None
+
     # context manager -------------------------------------------------------------------------
     def __enter__(self) -> "ReplaySource":
         self.open()

@@ -257,7 +257,7 @@ def run_stream(source, out_dir: str | Path, *, config: EngineConfig, fixture: Fi
             # a replay as fast as possible has every device's audio at hand: a wall-clock deadline there would only
             # make the output depend on the machine's load (a re-check or the first alignment that takes over
             # the deadline, on a loaded machine, left devices out of blocks)
-            unpaced = not src.live and getattr(src, "speed", None) is None
+            unpaced = not src.paced
             pipeline = Pipeline(dataclasses.replace(cfg, device_deadline_s=None) if unpaced else cfg,
                                 layout.sample_rates_hz, keep_input=keep, calibrator=calibrator,
                                 device_names=layout.names, speech=speech, history_cap=history_cap,
