@@ -27,7 +27,7 @@ def _add_engine_options(p: argparse.ArgumentParser) -> None:
                    "silero, webrtc or energy")
     g.add_argument("--gcc-weighting", choices=["subtract", "subtract-snr", "phat"],
                    help="noise cross-power removal before the PHAT weighting (default: subtract)")
-    g.add_argument("--n-peaks", type=int, help="GCC-PHAT peaks kept per pair (default 3)")
+    g.add_argument("--n-peaks", type=int, help="GCC-PHAT peaks kept per pair for the tracker (default 5)")
     g.add_argument("--gcc-smoothing-s", type=float,
                    help="short-time average of the cross-power spectra before the noise removal, seconds "
                         "(default 0.1; 0: every frame alone)")

@@ -63,7 +63,7 @@ class EngineConfig:
     target: str = "active-talker"                  # or "nearest DEVICE" (a device name or index)
     vad: str = "auto"                              # speech-presence backend (stream.speech), "auto" = the default
     gcc_weighting: GccWeighting = "subtract"       # noise cross-power removal before PHAT (estimators.multipeak)
-    n_peaks: int = 3                               # GCC peaks kept per pair
+    n_peaks: int = 5                               # GCC peaks kept per pair (tracker)
     noise_time_constant_s: float = 1.0             # noise cross-power average over non-speech frames
     noise_delay_s: float = 0.25                    # a frame joins the noise average this late, if no speech came since
     gcc_smoothing_s: float = 0.1                   # short-time cross-power average before the noise removal (0: off)
