@@ -27,7 +27,8 @@ N best GCC-PHAT peaks of every pair (:class:`estimators.multipeak.NoiseAwareGcc`
   speech frames it takes its source's peaks after the talkers, so that no talker track is born on them though
   the detector calls every frame speech while it sounds (a dish clatter fires Silero). It turns talker only
   once the pauses are quiet of it. The noise spectra correct it when they agree on all devices but one (a
-  single pause's peaks may put one device on a reflection).
+  single pause's peaks may put one device on a reflection). A talker track within ``NOISE_SAME_S`` of it on
+  every device (born on the noise's peaks where its gate missed them) is that noise source, and goes.
 - **Labels**: a track is ``"speech"`` when it was born and confirmed on speech frames; it becomes ``"noise"``
   when its activity does not follow speech presence: on non-speech frames (plain PHAT peaks) every track is
   checked, without an update, for its peaks (from 0.3 s after the last speech frame on, past a talker's
@@ -83,6 +84,7 @@ GHOST_MEMORY_S = 3.0              # a removed ghost is not born again at the sam
 REANCHOR_RATIO = 2.0              # votes for moving one device of the steered track against staying
 MAX_DRIFT_RATE_S_PER_S = 2.5e-4   # relative TOA rate two clocks at +-100 ppm (and some margin) can give
 TargetPolicy = Literal["active-talker", "nearest"]
+NOISE_SAME_S = 2.5e-4            # a talker track this close to a noise source found in the pauses (every device) is it
 TAKEOVER_S = 1e-3                 # a new talker track this close to the steered one (every device) is its talker
 
 
@@ -910,6 +912,12 @@ class SourceTracker:
                     self._end(t, time_s, "not confirmed")
             elif time_s - t.last_hit_s > self.forget_after_s:
                 self._end(t, time_s, f"no hit for {self.forget_after_s:g} s")
+        # a talker track on a noise source found in the pauses is that noise source (heard in speech frames too)
+        for n in [t for t in self.tracks if t.quiet_origin and t.kind == "noise"]:
+            for t in [t for t in self.tracks if t.kind == "speech"]:
+                if float(np.max(np.abs(t.toa_s - n.toa_s))) <= NOISE_SAME_S:
+                    self._end(t, time_s, f"merged into noise track {n.track_id} (the same source, heard in the "
+                                         "pauses)")
         # merge duplicates of the same kind (the younger goes)
         confirmed = [t for t in self.tracks if t.kind != "tentative"]
         for a_i, a in enumerate(confirmed):

@@ -298,3 +298,24 @@ def test_a_noise_heard_alone_before_the_talker_is_never_steered_though_the_detec
     noise = [t for t in tr.report()["tracks"] if t["kind"] == "noise"]
     assert noise and noise[0]["confirmed_s"] < 1.0
     assert np.max(np.abs(np.array(noise[0]["last_toa_s"]) - NOISE)) < 2.5e-4
+
+
+def test_a_talker_track_on_a_noise_source_found_in_the_pauses_is_that_noise_source():
+    """A talker track born on the noise's peaks (where the noise track's gate missed them on a pair or two) sits
+    where the source heard in the pauses is: it is that noise source, and goes (never steered)."""
+    rng = np.random.default_rng(7)
+    tr = _tracker()
+    t = 0.0
+    for _ in range(int(1.0 / DT)):   # the noise alone
+        tdoa, value = _peaks([(NOISE, 0.6)], rng)
+        tr.update(tdoa, value, speech_probability=0.0, usable=USABLE, time_s=t)
+        t += DT
+    noise = [x for x in tr.tracks if x.kind == "noise"]
+    assert len(noise) == 1 and noise[0].quiet_origin
+    twin = tr._new_track("speech", t)   # as a birth on the noise's free peaks would make it
+    twin.kalman.update(pair_matrix(M) @ (NOISE + np.r_[0.0, 1e-4, -1e-4, 0.0, 5e-5]), np.ones(M * (M - 1) // 2))
+    twin.activity = 1.0
+    tdoa, value = _peaks([(NOISE, 0.6), (TALKER_A, 0.4)], rng)
+    toa = tr.update(tdoa, value, speech_probability=1.0, usable=USABLE, time_s=t)
+    assert twin not in tr.tracks and twin.death_reason.startswith(f"merged into noise track {noise[0].track_id}")
+    assert np.max(np.abs(toa - NOISE)) > 2.5e-4
