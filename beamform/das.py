@@ -72,7 +72,7 @@ from typing import Literal
 import numba
 import numpy as np
 
-from estimators.numba_tools import borrowed
+from estimators.numba_tools import all_finite, borrowed
 
 from .stft import StreamingIstft, StreamingStft, _synthesise, istft, stft
 
@@ -108,19 +108,6 @@ _N_WORK = 9
 _VALID, _E_RE, _E_IM, _F_RE, _F_IM, _G, _GM, _G_NEW, _W = range(_N_WORK)
 # f32, float32: [channel weights (M) | fine phasors (M, 2, K) | steering row (2 J K)].
 _TWO_PI = 2.0 * math.pi
-_EXPONENT_MASK = np.uint32(0x7F800000)  # float32 exponent bits: all set <=> inf or NaN
-
-
-@numba.njit(cache=True, nogil=True)
-def _all_finite(bits: np.ndarray) -> bool:
-    """True if no float32 in ``bits`` (their uint32 view) is inf or NaN (exponent bits all set).
-
-    An integer max-reduction: it vectorises without reordering float sums and cannot overflow.
-    """
-    top = np.uint32(0)
-    for t in range(bits.shape[0]):
-        top = max(top, bits[t] & _EXPONENT_MASK)
-    return top != _EXPONENT_MASK
 
 
 @numba.njit(cache=True, nogil=True, fastmath={"reassoc"})
@@ -294,7 +281,7 @@ def _beamform(X: np.ndarray, toa: np.ndarray, valid: np.ndarray, f64: np.ndarray
         # eq. (7) phase step per bin in turns, omega_1 toa / 2 pi (a non-finite one, also from an
         # overflowing toa, cannot be steered), then reduced exactly to [-1/2, 1/2]
         u = toa[i] * fstate[_BIN_HZ]
-        good = valid[i] and math.isfinite(u) and _all_finite(xbits[i])
+        good = valid[i] and math.isfinite(u) and all_finite(xbits[i])
         ok[i] = 1.0 if good else 0.0
         n_ok += good
         if not good:

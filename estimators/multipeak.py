@@ -46,7 +46,7 @@ from typing import Literal
 import numba
 import numpy as np
 
-from .numba_tools import borrowed
+from .numba_tools import all_finite, borrowed
 
 __all__ = ["NoiseAwareGcc", "Weighting"]
 
@@ -67,7 +67,6 @@ FAST_SNR_DB = (15.0, 30.0)
 _OK, _BAD_SPECTRA_SHAPE, _BAD_VALID_SHAPE = 0, 1, 2
 _EPS_REL = np.float32(1e-6)
 _TINY = np.float32(np.finfo(np.float32).tiny)
-_EXPONENT_MASK = np.uint32(0x7F800000)   # float32 exponent bits: all set <=> inf or NaN
 _MAGNITUDE_MASK = np.uint32(0x7FFFFFFF)  # every bit but the sign: none set <=> +-0
 
 
@@ -115,16 +114,16 @@ def _top_peaks(row, max_lag, rate_hz, out_tdoa, out_value):
 @_jit
 def _channel_ok(x, valid):
     """Whether a channel's spectrum is usable: flagged valid, finite and not all zero (integer reductions over
-    the float32 bits, which vectorise: an inf or NaN has every exponent bit set, a zero none but the sign)."""
+    the float32 bits, which vectorise: a zero has none set but the sign)."""
     if not valid:
         return False
     bits = x.view(np.uint32)
-    top = np.uint32(0)
+    if not all_finite(bits):
+        return False
     nonzero = np.uint32(0)
     for k in range(bits.shape[0]):
-        top = max(top, bits[k] & _EXPONENT_MASK)
         nonzero |= bits[k] & _MAGNITUDE_MASK
-    return top != _EXPONENT_MASK and nonzero != 0
+    return nonzero != 0
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy", fastmath={"reassoc"})
@@ -138,11 +137,12 @@ def _dot(a, b):
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy", fastmath={"reassoc"})
-def _sum(a):
-    """``sum_k a[k]`` of a float32 row in float64 SIMD lanes (``reassoc``, as :func:`_dot`)."""
+def _abs_sum(f):
+    """``sum_k |z_k|`` of complex values given as their interleaved (re, im) float32 view, ``|.|`` as a float32
+    ``sqrt``, summed in float64 SIMD lanes (``reassoc``, as :func:`_dot`)."""
     s = 0.0
-    for k in range(a.shape[0]):
-        s += np.float64(a[k])
+    for k in range(f.shape[0] // 2):
+        s += np.float64(np.sqrt(f[2 * k] * f[2 * k] + f[2 * k + 1] * f[2 * k + 1]))
     return s
 
 
@@ -211,11 +211,7 @@ def _pair_spectrum(xi, xj, oi, oj, phi, sm, g, scratch, a, b, mode, update, phi_
             ar, ai, br, bi = of[2 * k], of[2 * k + 1], pf[2 * k], pf[2 * k + 1]
             phf[2 * k] += a * ((ar * br + ai * bi) - phf[2 * k])
             phf[2 * k + 1] += a * ((ai * br - ar * bi) - phf[2 * k + 1])
-        for k in range(n_bins):
-            m2[k] = np.sqrt(phf[2 * k] * phf[2 * k] + phf[2 * k + 1] * phf[2 * k + 1])
-        phi_l1[0] = _sum(m2)
-        for k in range(n_bins):   # |G|^2 back for the PHAT below
-            m2[k] = gf[2 * k] * gf[2 * k] + gf[2 * k + 1] * gf[2 * k + 1]
+        phi_l1[0] = _abs_sum(phf)
     eps = _EPS_REL * np.sqrt(peak2) + _TINY
     eps2 = eps * eps
     one = np.float32(1.0)

@@ -1,10 +1,26 @@
 """Numba helpers shared by the compiled per-hop kernels of ``estimators`` and ``beamform`` (public: beamform
-imports it from here; it depends on numba alone)."""
+imports it from here; it depends on numba and numpy alone)."""
 
 from __future__ import annotations
 
+import numba
+import numpy as np
 from numba.core import types
 from numba.extending import intrinsic
+
+EXPONENT_MASK = np.uint32(0x7F800000)  # float32 exponent bits: all set <=> inf or NaN
+
+
+@numba.njit(cache=True, nogil=True)
+def all_finite(bits: np.ndarray) -> bool:
+    """True if no float32 in ``bits`` (their uint32 view) is inf or NaN (exponent bits all set).
+
+    An integer max-reduction: it vectorises without reordering float sums and cannot overflow.
+    """
+    top = np.uint32(0)
+    for t in range(bits.shape[0]):
+        top = max(top, bits[t] & EXPONENT_MASK)
+    return top != EXPONENT_MASK
 
 
 @intrinsic

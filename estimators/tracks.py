@@ -519,16 +519,9 @@ class SourceTracker:
             pred, gate = self._predicted(t)
             if t is self.steered and self._reanchor(t, peak_tdoa, peak_value, pred, pair_ok):
                 pred, gate = self._predicted(t)
-            n_took = _pick_peaks(peak_tdoa, peak_value, pred, gate, used, pair_ok, self.min_peak_value, k, picked)
-            took = picked
-            tdoa = peak_tdoa[self._rows, k]
-            if n_took >= min_pairs:
-                took = self._consistent(tdoa, took)   # peaks in the gate must also agree with each other
-            n_took = int(took.sum())
+            took, conf = self._match(t, pred, gate, peak_tdoa, peak_value, pair_ok, used, min_pairs, k, picked)
             hit = False
-            if n_took >= min_pairs:
-                conf = np.where(took, peak_value[self._rows, k], 0.0)
-                t.kalman.update(tdoa, conf)
+            if conf is not None:
                 if not t.kalman.gated:
                     hit = True
                     used[self._rows[took], k[took]] = True
@@ -555,6 +548,20 @@ class SourceTracker:
             self._take_over(time_s)
         self._used = used
         return hit_any
+
+    def _match(self, t: Track, pred, gate, peak_tdoa, peak_value, pair_ok, used, min_pairs, k, picked):
+        """Per pair the unused peak nearest ``t``'s prediction within its gate (into ``k``, ``picked``), kept if
+        the peaks agree with one TOA vector; with at least ``min_pairs`` of them the track updates (it may gate
+        them out as clutter: ``t.kalman.gated``). Returns (the pairs kept, their confidences, or None when the
+        track did not update)."""
+        n_took = _pick_peaks(peak_tdoa, peak_value, pred, gate, used, pair_ok, self.min_peak_value, k, picked)
+        tdoa = peak_tdoa[self._rows, k]
+        took = self._consistent(tdoa, picked) if n_took >= min_pairs else picked   # peaks must also agree
+        if int(took.sum()) < min_pairs:
+            return took, None
+        conf = np.where(took, peak_value[self._rows, k], 0.0)
+        t.kalman.update(tdoa, conf)
+        return took, conf
 
     def _reanchor(self, t: Track, peak_tdoa, peak_value, pred, pair_ok) -> bool:
         """One device of the steered track locked on a reflection or a side lobe: all its pairs show a peak at
@@ -839,16 +846,11 @@ class SourceTracker:
             if not (t.quiet_origin or t.quiet_born):
                 continue
             pred, gate = self._predicted(t)
-            n_took = _pick_peaks(peak_tdoa, peak_value, pred, gate, used, pair_ok, self.min_peak_value, k, picked)
-            tdoa = peak_tdoa[self._rows, k]
-            took = self._consistent(tdoa, picked) if n_took >= min_pairs else picked
-            hit = int(took.sum()) >= min_pairs
+            took, conf = self._match(t, pred, gate, peak_tdoa, peak_value, pair_ok, used, min_pairs, k, picked)
+            hit = conf is not None and not t.kalman.gated
             if hit:
-                t.kalman.update(tdoa, np.where(took, peak_value[self._rows, k], 0.0))
-                hit = not t.kalman.gated
-                if hit:
-                    used[self._rows[took], k[took]] = True
-                    t.last_hit_s = time_s
+                used[self._rows[took], k[took]] = True
+                t.last_hit_s = time_s
             if not t.quiet_born:
                 continue
             t.quiet_seen += 1
