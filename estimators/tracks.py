@@ -477,13 +477,16 @@ class SourceTracker:
             self._quiet_frames = 0
         else:
             self._quiet_frames += 1
+            quiet = self._quiet_frames >= self.quiet_skip_frames   # past the talker's reverberant tail
+            sources = bool(n_ok) and quiet and self.quiet_confirm_frames is not None
             for t in self.tracks:
-                t.kalman.predict()
-                self._hold_still(t, quiet=self._quiet_frames >= self.quiet_skip_frames)
-            if n_ok and self._quiet_frames >= self.quiet_skip_frames:   # past the talker's reverberant tail
-                self._quiet_check(peak_tdoa_s, peak_value, pair_ok, n_ok)
-                if self.quiet_confirm_frames is not None:
+                if not (sources and (t.quiet_origin or t.quiet_born)):   # those step with their peaks below
+                    t.kalman.predict()
+                    self._hold_still(t, quiet=quiet)
+            if n_ok and quiet:
+                if sources:
                     self._quiet_sources(peak_tdoa_s, peak_value, pair_ok, n_ok, usable, time_s)
+                self._quiet_check(peak_tdoa_s, peak_value, pair_ok, n_ok)
         if noise_peaks is not None and self.n_frames % self.noise_every_frames == 0:
             self._noise_update(*noise_peaks(), pair_ok, n_ok, usable, time_s)
         self._housekeeping(time_s)
@@ -847,6 +850,9 @@ class SourceTracker:
                 continue
             pred, gate = self._predicted(t)
             took, conf = self._match(t, pred, gate, peak_tdoa, peak_value, pair_ok, used, min_pairs, k, picked)
+            if conf is None:   # one step per frame: the update predicts, so only a track without one does here
+                t.kalman.predict()
+            self._hold_still(t, quiet=True)
             hit = conf is not None and not t.kalman.gated
             if hit:
                 used[self._rows[took], k[took]] = True

@@ -319,3 +319,26 @@ def test_a_talker_track_on_a_noise_source_found_in_the_pauses_is_that_noise_sour
     toa = tr.update(tdoa, value, speech_probability=1.0, usable=USABLE, time_s=t)
     assert twin not in tr.tracks and twin.death_reason.startswith(f"merged into noise track {noise[0].track_id}")
     assert np.max(np.abs(toa - NOISE)) > 2.5e-4
+
+
+def test_a_noise_track_of_the_pauses_steps_once_per_frame():
+    """Every track advances one frame per frame: a noise track found in the pauses updates with its peaks there
+    (the update predicts), so it is not also given the pause's prediction of the other tracks."""
+    rng = np.random.default_rng(8)
+    tr = _tracker()
+    t = 0.0
+    for _ in range(int(1.0 / DT)):
+        tdoa, value = _peaks([(NOISE, 0.6)], rng)
+        tr.update(tdoa, value, speech_probability=0.0, usable=USABLE, time_s=t)
+        t += DT
+    noise = next(x for x in tr.tracks if x.kind == "noise" and x.quiet_origin)
+    steps = []
+    for name in ("predict", "update"):
+        method = getattr(noise.kalman, name)
+        setattr(noise.kalman, name, lambda *a, _m=method, **k: (steps.append(1), _m(*a, **k))[1])
+    n = 20
+    for _ in range(n):
+        tdoa, value = _peaks([(NOISE, 0.6)], rng)
+        tr.update(tdoa, value, speech_probability=0.0, usable=USABLE, time_s=t)
+        t += DT
+    assert len(steps) == n
