@@ -392,6 +392,7 @@ class SourceTracker:
         self._co: dict[tuple[int, int], list[float]] = {}   # per pair of talker tracks: EMA of both hit, either hit
         self._ghost_of: tuple[int, int] | None = None       # (ghost, its source) when the steered track was a ghost
         self._from_id = -1                                   # the track the next switch comes from, when it ended
+        self._steered_end: tuple[int, str] | None = None     # (track, death reason) when the steered track ended
         self._ghost_toas: list[tuple[float, np.ndarray]] = []  # (time removed, TOA) of recent ghosts
         self.steered: Track | None = None
         self._quiet_frames = 0
@@ -833,6 +834,7 @@ class SourceTracker:
             self.ended.append(t)
         if t is self.steered:
             self.steered = None
+            self._steered_end = (t.track_id, reason)
 
     def _quiet_sources(self, peak_tdoa, peak_value, pair_ok, n_ok, usable, time_s) -> None:
         """Non-speech frame past a talker's tail (plain PHAT peaks): noise sources are born here too. A source
@@ -946,12 +948,17 @@ class SourceTracker:
         elif self._ghost_of is not None:
             reason = f"track {self._ghost_of[0]} was a ghost of track {self._ghost_of[1]}"
             self._from_id = self._ghost_of[0]
+        elif self._steered_end is not None:   # the steered track ended (merged into a noise source, forgotten)
+            reason = f"track {self._steered_end[0]} ended: {self._steered_end[1]}"
+            self._from_id = self._steered_end[0]
         else:
             reason = ""
         self._ghost_of = None
+        self._steered_end = None
         if not talkers:
             if reason:
                 self.switches.append({"time_s": round(time_s, 3), "from": self._last_id, "to": -1, "reason": reason})
+                self._from_id = -1   # the next switch comes from nothing steered
             return
         if self.target == "nearest":
             recent = [t for t in talkers if time_s - t.last_hit_s <= self.forget_after_s]

@@ -342,3 +342,22 @@ def test_a_noise_track_of_the_pauses_steps_once_per_frame():
         tr.update(tdoa, value, speech_probability=0.0, usable=USABLE, time_s=t)
         t += DT
     assert len(steps) == n
+
+
+def test_a_switch_away_from_a_steered_track_that_ended_says_why():
+    """The steered talker is forgotten after ``forget_after_s`` without a hit: the switch away from it names the
+    track and the death reason (it read "first talker track" for the next one, as if nothing had been steered)."""
+    rng = np.random.default_rng(9)
+    tr = _tracker(forget_after_s=1.0)
+    t = 0.0
+    for speech, dur in ((1.0, 1.5), (0.0, 1.5), (1.0, 1.0)):   # A talks, a silent pause, then B
+        for _ in range(int(dur / DT)):
+            sources = [(TALKER_A if t < 2.0 else TALKER_B, 0.6)] if speech else []
+            tdoa, value = _peaks(sources, rng)
+            tr.update(tdoa, value, speech_probability=speech, usable=USABLE, time_s=t)
+            t += DT
+    first, gone, second = tr.report()["switches"]
+    assert first["to"] >= 0 and first["reason"] == f"first talker track {first['to']}"
+    assert gone["from"] == first["to"] and gone["to"] == -1
+    assert gone["reason"] == f"track {first['to']} ended: no hit for 1 s", gone
+    assert second["from"] == -1 and second["to"] not in (-1, first["to"]), second
