@@ -424,7 +424,7 @@ class SourceTracker:
 
     def noise_at(self, toa_s: np.ndarray, tol_s: float = 2.5e-4) -> bool:
         """Whether a tracked noise source sits at the relative TOA ``toa_s`` (every device within ``tol_s``)."""
-        return any(t.kind == "noise" and float(np.max(np.abs(t.toa_s - toa_s))) <= tol_s for t in self.tracks)
+        return any(t.kind == "noise" and self._gap(t.toa_s, toa_s) <= tol_s for t in self.tracks)
 
     def report(self) -> dict:
         """Tracks (alive and ended), switches and counters, for ``report.json``."""
@@ -600,7 +600,7 @@ class SourceTracker:
             return
         for t in self.tracks:
             if t is not st and t.kind == "speech" and t.confirmed_s == time_s \
-                    and float(np.max(np.abs(t.toa_s - st.toa_s))) <= TAKEOVER_S:
+                    and self._gap(t.toa_s, st.toa_s) <= TAKEOVER_S:
                 st.kalman._kf.x[:] = t.kalman._kf.x
                 st.kalman._kf.P[:] = t.kalman._kf.P
                 st.last_hit_s = time_s
@@ -915,6 +915,11 @@ class SourceTracker:
         """RMS over devices of the difference of two relative TOA vectors, seconds."""
         return float(np.sqrt(np.mean((a - b) ** 2)))
 
+    @staticmethod
+    def _gap(a: np.ndarray, b: np.ndarray) -> float:
+        """Largest difference over devices of two relative TOA vectors, seconds ("every device within")."""
+        return float(np.max(np.abs(a - b)))
+
     def _housekeeping(self, time_s: float) -> None:
         for t in list(self.tracks):
             if t.kind == "tentative":
@@ -924,8 +929,9 @@ class SourceTracker:
                 self._end(t, time_s, f"no hit for {self.forget_after_s:g} s")
         # a talker track on a noise source found in the pauses is that noise source (heard in speech frames too)
         for n in [t for t in self.tracks if t.quiet_origin and t.kind == "noise"]:
+            n_toa = n.toa_s
             for t in [t for t in self.tracks if t.kind == "speech"]:
-                if float(np.max(np.abs(t.toa_s - n.toa_s))) <= NOISE_SAME_S:
+                if self._gap(t.toa_s, n_toa) <= NOISE_SAME_S:
                     self._end(t, time_s, f"merged into noise track {n.track_id} (the same source, heard in the "
                                          "pauses)")
         # merge duplicates of the same kind (the younger goes)

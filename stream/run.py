@@ -114,11 +114,11 @@ def channel_layout(cfg: EngineConfig, devices: Sequence, fixture: Fixture | None
 def make_calibrator(cfg: EngineConfig, n_devices: int, out: Path, *, device_names: Sequence[str] = (),
                     solver: Callable[[CalibrationSnapshot], Geometry] | None = None,
                     on_geometry: Callable[[Geometry], None] | None = None,
-                    live: bool = False, layout: ChannelLayout | None = None) -> StreamCalibrator | None:
+                    paced: bool = False, layout: ChannelLayout | None = None) -> StreamCalibrator | None:
     """The stream's calibrator from the resolved options (None when ``calibration_odometry`` is unset).
 
     Every adopted geometry is written to ``out/geometry.json`` (atomically) and then handed to
-    ``on_geometry`` (the publish hook).
+    ``on_geometry`` (the publish hook). ``paced``: the source's (:class:`~stream.messages.Source`).
     """
     if not cfg.calibration_odometry:
         return None
@@ -143,7 +143,7 @@ def make_calibrator(cfg: EngineConfig, n_devices: int, out: Path, *, device_name
         threshold=cfg.chirp_threshold, solver=solver, on_geometry=publish, executor=cfg.calibration_executor,
         max_events=cfg.calibration_max_events, device_names=device_names,
         # unpaced replay: adopt solves at fixed stream times (reproducible); paced (fake live): never wait
-        replay_latency_s=cfg.calibration_replay_latency_s if (cfg.speed is None and not live) else None,
+        replay_latency_s=None if paced else cfg.calibration_replay_latency_s,
         arrays=layout.placements() if layout is not None else ())
 
 
@@ -253,12 +253,11 @@ def run_stream(source, out_dir: str | Path, *, config: EngineConfig, fixture: Fi
             if not layout.identity:
                 report["arrays"] = layout.report()
             calibrator = make_calibrator(cfg, len(layout.channels), out, device_names=layout.names,
-                                         solver=solver, on_geometry=on_geometry, live=report["live"], layout=layout)
+                                         solver=solver, on_geometry=on_geometry, paced=src.paced, layout=layout)
             # a replay as fast as possible has every device's audio at hand: a wall-clock deadline there would only
             # make the output depend on the machine's load (a re-check or the first alignment that takes over
             # the deadline, on a loaded machine, left devices out of blocks)
-            unpaced = not src.paced
-            pipeline = Pipeline(dataclasses.replace(cfg, device_deadline_s=None) if unpaced else cfg,
+            pipeline = Pipeline(dataclasses.replace(cfg, device_deadline_s=None) if not src.paced else cfg,
                                 layout.sample_rates_hz, keep_input=keep, calibrator=calibrator,
                                 device_names=layout.names, speech=speech, history_cap=history_cap,
                                 clock_groups=layout.clock_groups)
