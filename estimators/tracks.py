@@ -226,6 +226,7 @@ class Track:
     hit_now: bool = False            # hit in the last speech frame
     hit_value: float = 0.0           # and its matched peak heights summed over the pairs / usable pairs
     anchor_votes: np.ndarray | None = field(default=None, repr=False)   # (M, bins): see SourceTracker._reanchor
+    drift_rate_s_per_s: np.ndarray | None = None   # EMA over its hits (3 s) of its TOA rates: clock drift
     quiet_activity: float = 0.0      # EMA over non-speech frames of "its peaks are there" (0 or 1)
     speech_rate: float = 0.0         # EMA over speech frames of "it had a hit" (0 or 1)
     active_s: float = 0.0            # seconds of frames with a hit
@@ -335,6 +336,7 @@ class SourceTracker:
         self.noise_every_frames = max(1, int(round(noise_every_s / self.frame_period_s)))
         self.quiet_beta = 1.0 - math.exp(-self.frame_period_s / 1.0)   # 1 s average over non-speech frames
         self.quiet_skip_frames = max(1, int(round(0.3 / self.frame_period_s)))  # 0.3 s after speech: its tail
+        self._drift_beta = 1.0 - math.exp(-self.frame_period_s / 3.0)   # 3 s average over a track's hits
         self.noise_quiet_activity = float(noise_quiet_activity)
         self.max_rate_s_per_s = float(max_rate_s_per_s)
         self.quiet_confirm_frames = (None if quiet_confirm_s is None
@@ -643,13 +645,19 @@ class SourceTracker:
         """Keep a track's TOA rates physical: at most ``max_rate_s_per_s`` (a talker walking at 1 m/s changes
         a TDOA by at most 2.9 ms/s; clock drift adds 0.2 ms/s), so that a rate learned from a few stray peaks
         cannot carry a track away while it is not corrected. In a pause (``quiet``, from 0.3 s after the last
-        speech frame) the rate is held to what clock drift alone gives (``MAX_DRIFT_RATE_S_PER_S``): it is not
-        damped to 0, as drift goes on while the talker is silent, but a motion or a stray rate learned from a
-        few peaks must not carry the track seconds away before it is heard again."""
+        speech frame) the track goes on at its rate averaged over its hits (clock drift, which goes on while the
+        talker is silent: not damped to 0), held to what clock drift alone gives (``MAX_DRIFT_RATE_S_PER_S``): a
+        motion or a stray rate learned from its last few peaks must not carry the track seconds away before it
+        is heard again."""
         x = t.kalman._kf.x
         m = self.n_devices - 1
         limit = MAX_DRIFT_RATE_S_PER_S if quiet else self.max_rate_s_per_s
         rate = x[m:]
+        if quiet and t.drift_rate_s_per_s is not None:
+            # the rate averaged over its hits: clock drift, not the last few frames' rate (the reverberant end
+            # of a phrase, a stray peak), which would carry it away in a long pause or a phrase the speech
+            # detector missed
+            rate[:] = t.drift_rate_s_per_s
         np.minimum(rate, limit, out=rate)
         np.maximum(rate, -limit, out=rate)
 
@@ -682,6 +690,12 @@ class SourceTracker:
             t.quiet_origin = False
 
     def _record_hit(self, t: Track, time_s: float, value: float) -> None:
+        rate = t.kalman._kf.x[self.n_devices - 1:]
+        if t.drift_rate_s_per_s is None:
+            t.drift_rate_s_per_s = rate.copy()
+        else:
+            # a plain average over its first hits, then the 3 s exponential one (no pull towards the first rate)
+            t.drift_rate_s_per_s += max(self._drift_beta, 1.0 / (t.n_hits + 1)) * (rate - t.drift_rate_s_per_s)
         t.n_hits += 1
         t.last_hit_s = time_s
         t.active_s += self.frame_period_s

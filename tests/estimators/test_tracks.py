@@ -361,3 +361,27 @@ def test_a_switch_away_from_a_steered_track_that_ended_says_why():
     assert gone["from"] == first["to"] and gone["to"] == -1
     assert gone["reason"] == f"track {first['to']} ended: no hit for 1 s", gone
     assert second["from"] == -1 and second["to"] not in (-1, first["to"]), second
+
+
+def test_clock_drift_is_followed_through_a_long_pause():
+    """Devices 1-3 drift against device 0 (-150, 120, -60 ppm: the talker's TOA moves with them). The talker
+    speaks 5 s, and the phrase's reverberant end pulls device 1's peaks 0.3 ms late over its last 0.15 s; then
+    4 s without speech (a pause, or a phrase the speech detector missed). The track goes on with the drift
+    averaged over its hits, not the rate of its last frames: after the pause it is within 0.1 ms of the
+    talker on every device (the last frames' rate would have carried it off)."""
+    rng = np.random.default_rng(13)
+    tr = _tracker()
+    drift = np.array([0.0, -150e-6, 120e-6, -60e-6, 0.0])
+    t = 0.0
+    for _ in range(int(5.0 / DT)):
+        toa = TALKER_A + drift * t
+        if t > 4.85:
+            toa = toa + np.array([0.0, 3e-4, 0.0, 0.0, 0.0])
+        tdoa, value = _peaks([(toa, 0.5)], rng, jitter_samples=0.5)
+        tr.update(tdoa, value, speech_probability=1.0, usable=USABLE, time_s=t)
+        t += DT
+    for _ in range(int(4.0 / DT)):
+        tdoa, value = _peaks([], rng)
+        tr.update(tdoa, value, speech_probability=0.0, usable=USABLE, time_s=t)
+        t += DT
+    assert np.max(np.abs(tr.steered_toa_s - (TALKER_A + drift * t))) < 1e-4
