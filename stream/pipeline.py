@@ -341,8 +341,24 @@ class Pipeline:
             gcc = estimators.NoiseAwareGcc(m, n_fft=cfg.frame_samples, sample_rate_hz=cfg.working_rate_hz,
                                            hop_s=cfg.hop_samples / cfg.working_rate_hz, max_tdoa_s=cfg.max_tdoa_s,
                                            n_peaks=cfg.n_peaks, weighting=cfg.gcc_weighting)
-            gcc.process(spectra, speech_probability=0.0, valid=np.ones(m, bool))
+            peak_tdoa, peak_value = gcc.process(spectra, speech_probability=0.0, valid=np.ones(m, bool))
             gcc.noise_peaks()
+            if m >= 2:
+                # the tracker's own kernels (births, association, the steered track's re-anchoring votes, its
+                # tracks' Kalman steps, the pauses' checks): compiled by the first talker instead, they stalled
+                # that hop for ~0.5 s on a first run (live: input overflows). One talker, heard then silent
+                tracker = estimators.SourceTracker(m, frame_period_s=cfg.hop_samples / cfg.working_rate_hz,
+                                                   sample_rate_hz=cfg.working_rate_hz)
+                hop_s = cfg.hop_samples / cfg.working_rate_hz
+                talker = estimators.pair_matrix(m) @ np.linspace(0.0, 1e-3, m)
+                n_speech, n_frames = 10, 10 + int(0.4 / hop_s) + 2
+                for k in range(n_frames):
+                    peak_tdoa[:] = np.linspace(-5e-3, 5e-3, peak_tdoa.shape[1])
+                    peak_tdoa[:, 0] = talker
+                    peak_value[:] = 0.05
+                    peak_value[:, 0] = 0.5
+                    tracker.update(peak_tdoa, peak_value, speech_probability=1.0 if k < n_speech else 0.0,
+                                   usable=np.ones(m, bool), time_s=k * hop_s)
         elif self.gcc is not None:
             estimators.GccPhat(m, n_fft=cfg.frame_samples, sample_rate_hz=cfg.working_rate_hz,
                                max_tdoa_s=cfg.max_tdoa_s).process(spectra, valid=np.ones(m, bool))
