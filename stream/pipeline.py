@@ -27,9 +27,9 @@ import beamform
 import estimators
 from estimators import SPEED_OF_SOUND_M_S
 
-from .align import Aligner, AlignmentEvent
+from .align import Aligner, AlignmentEvent, _block_valid
 from .calibration import StreamCalibrator
-from .condition import DeviceCounters, FrameChecker, RetunableConditioner
+from .condition import DeviceCounters, FrameChecker, RetunableConditioner, _frame_stats
 from .config import EngineConfig
 from .errors import ConfigError
 from .geometry import Geometry
@@ -337,6 +337,10 @@ class Pipeline:
         cfg, m = self.config, self.n_devices
         stft = beamform.StreamingStft(m, frame_samples=cfg.frame_samples, hop_samples=cfg.hop_samples)
         spectra = stft.process(np.zeros((cfg.hop_samples, m), np.float32))
+        # every frame's energy and peak (the checker), every block's validity (the aligner)
+        _frame_stats(np.zeros(cfg.hop_samples, np.float32))
+        _block_valid(np.zeros((cfg.hop_samples, m), np.float32), np.ones(m, bool), np.zeros(m, bool),
+                     np.ones(m, bool), np.empty(m, np.bool_))
         if self.tracker is not None:
             gcc = estimators.NoiseAwareGcc(m, n_fft=cfg.frame_samples, sample_rate_hz=cfg.working_rate_hz,
                                            hop_s=cfg.hop_samples / cfg.working_rate_hz, max_tdoa_s=cfg.max_tdoa_s,

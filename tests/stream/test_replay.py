@@ -247,15 +247,16 @@ def test_a_replay_as_fast_as_possible_does_not_depend_on_how_loaded_the_machine_
 def test_the_trackers_kernels_are_compiled_before_the_stream_not_at_its_first_talker():
     """numba compiles a kernel at its first call (or loads it from its cache): the tracker's kernels, first
     called when the first talker is heard, stalled that hop for ~0.5 s on a first run after an install or an
-    update (live: input overflows). The pipeline calls them once when it is built. Checked in a fresh
-    interpreter, where no other test has called them."""
+    update (live: input overflows); so did the checker's and the aligner's, in the stream's first block. The
+    pipeline calls them once when it is built. Checked in a fresh interpreter, where no other test has called
+    them."""
     import subprocess
     import sys
-    code = ("import estimators.tracks as T, estimators.toa as K; from stream.config import EngineConfig; "
-            "from stream.pipeline import Pipeline; "
+    code = ("import estimators.tracks as T, estimators.toa as K, stream.align as A, stream.condition as C; "
+            "from stream.config import EngineConfig; from stream.pipeline import Pipeline; "
             "Pipeline(EngineConfig(estimator='tracks').resolved(16000.0), [16000.0] * 4); "
             "print(all(len(f.signatures) > 0 for f in (T._anchor_vote, T._predict_gate, T._pick_peaks, "
-            "T._solve_pairs, K._kalman_step)))")
+            "T._solve_pairs, K._kalman_step, A._block_valid, C._frame_stats)))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
                          cwd=Path(__file__).resolve().parents[2])
     assert out.returncode == 0 and out.stdout.strip() == "True", out.stdout + out.stderr[-2000:]
