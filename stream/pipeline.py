@@ -346,23 +346,27 @@ class Pipeline:
                                            hop_s=cfg.hop_samples / cfg.working_rate_hz, max_tdoa_s=cfg.max_tdoa_s,
                                            n_peaks=cfg.n_peaks, weighting=cfg.gcc_weighting)
             peak_tdoa, peak_value = gcc.process(spectra, speech_probability=0.0, valid=np.ones(m, bool))
-            gcc.noise_peaks()
+            noise = gcc.noise_peaks()
             if m >= 2:
                 # the tracker's own kernels (births, association, the steered track's re-anchoring votes, its
-                # tracks' Kalman steps, the pauses' checks): compiled by the first talker instead, they stalled
-                # that hop for ~0.5 s on a first run (live: input overflows). One talker, heard then silent
+                # tracks' Kalman steps, the pauses' checks, the noise sources from the noise spectra): compiled
+                # by the first talker or the first mature noise spectra instead, they stalled that hop for
+                # 0.26-0.5 s on a first run (live: input overflows, an output underflow). One talker, heard then
+                # silent, and a noise source
                 tracker = estimators.SourceTracker(m, frame_period_s=cfg.hop_samples / cfg.working_rate_hz,
                                                    sample_rate_hz=cfg.working_rate_hz)
                 hop_s = cfg.hop_samples / cfg.working_rate_hz
-                talker = estimators.pair_matrix(m) @ np.linspace(0.0, 1e-3, m)
+                h = estimators.pair_matrix(m)
+                talker, source = h @ np.linspace(0.0, 1e-3, m), h @ np.linspace(0.0, -2e-3, m)
                 n_speech, n_frames = 10, 10 + int(0.4 / hop_s) + 2
                 for k in range(n_frames):
-                    peak_tdoa[:] = np.linspace(-5e-3, 5e-3, peak_tdoa.shape[1])
-                    peak_tdoa[:, 0] = talker
-                    peak_value[:] = 0.05
-                    peak_value[:, 0] = 0.5
+                    for tdoa, value, first in ((peak_tdoa, peak_value, talker), (noise[0], noise[1], source)):
+                        tdoa[:] = np.linspace(-5e-3, 5e-3, tdoa.shape[1])
+                        tdoa[:, 0] = first
+                        value[:] = 0.05
+                        value[:, 0] = 0.5
                     tracker.update(peak_tdoa, peak_value, speech_probability=1.0 if k < n_speech else 0.0,
-                                   usable=np.ones(m, bool), time_s=k * hop_s)
+                                   usable=np.ones(m, bool), time_s=k * hop_s, noise_peaks=lambda: noise)
         elif self.gcc is not None:
             estimators.GccPhat(m, n_fft=cfg.frame_samples, sample_rate_hz=cfg.working_rate_hz,
                                max_tdoa_s=cfg.max_tdoa_s).process(spectra, valid=np.ones(m, bool))
