@@ -369,6 +369,30 @@ class SourceTracker:
             self._star_other.append(other)
         self.reset()
 
+    @classmethod
+    def compile_kernels(cls, n_devices: int, peak_tdoa: np.ndarray, peak_value: np.ndarray, noise: tuple, *,
+                        frame_period_s: float, sample_rate_hz: float) -> None:
+        """Compile (or load from numba's cache) every kernel a stream's tracker calls, before the stream: births,
+        association, the steered track's re-anchoring votes, its tracks' Kalman steps, the pauses' checks and
+        the noise sources from the noise spectra (a column of their peak array: another layout). Compiled by the
+        first talker or the first mature noise spectra instead, they stalled that hop for 0.26-0.5 s on a first
+        run (live: input overflows, an output underflow). A throwaway tracker hears one talker, then silence,
+        and a noise source. ``peak_tdoa``/``peak_value`` and ``noise`` (``(peak_tdoa, peak_value,
+        correlation)``) are scratch arrays of the types the stream passes (a GCC stage's outputs): overwritten."""
+        m = n_devices
+        tracker = cls(m, frame_period_s=frame_period_s, sample_rate_hz=sample_rate_hz)
+        h = pair_matrix(m)
+        talker, source = h @ np.linspace(0.0, 1e-3, m), h @ np.linspace(0.0, -2e-3, m)
+        n_speech, n_frames = 10, 10 + int(0.4 / frame_period_s) + 2
+        for k in range(n_frames):
+            for tdoa, value, first in ((peak_tdoa, peak_value, talker), (noise[0], noise[1], source)):
+                tdoa[:] = np.linspace(-5e-3, 5e-3, tdoa.shape[1])
+                tdoa[:, 0] = first
+                value[:] = 0.05
+                value[:, 0] = 0.5
+            tracker.update(peak_tdoa, peak_value, speech_probability=1.0 if k < n_speech else 0.0,
+                           usable=np.ones(m, bool), time_s=k * frame_period_s, noise_peaks=lambda: noise)
+
     # -- state ---------------------------------------------------------------------------------------
     def reset(self) -> None:
         """Forget every track and the steering (the stream re-aligned a device: what was tracked under the old
@@ -654,9 +678,6 @@ class SourceTracker:
         limit = MAX_DRIFT_RATE_S_PER_S if quiet else self.max_rate_s_per_s
         rate = x[m:]
         if quiet and t.drift_rate_s_per_s is not None:
-            # the rate averaged over its hits: clock drift, not the last few frames' rate (the reverberant end
-            # of a phrase, a stray peak), which would carry it away in a long pause or a phrase the speech
-            # detector missed
             rate[:] = t.drift_rate_s_per_s
         np.minimum(rate, limit, out=rate)
         np.maximum(rate, -limit, out=rate)

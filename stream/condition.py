@@ -32,6 +32,11 @@ def _frame_stats(x):
     return energy, peak
 
 
+def compile_kernels(hop_samples: int) -> None:
+    """Compile (or load from numba's cache) this module's per-frame kernel before a stream starts."""
+    _frame_stats(np.zeros(hop_samples, np.float32))
+
+
 @dataclass
 class DeviceCounters:
     """Data-quality counters of one device (samples at the device's own rate)."""

@@ -27,9 +27,10 @@ import beamform
 import estimators
 from estimators import SPEED_OF_SOUND_M_S
 
-from .align import Aligner, AlignmentEvent, _block_valid
+from . import align, condition
+from .align import Aligner, AlignmentEvent
 from .calibration import StreamCalibrator
-from .condition import DeviceCounters, FrameChecker, RetunableConditioner, _frame_stats
+from .condition import DeviceCounters, FrameChecker, RetunableConditioner
 from .config import EngineConfig
 from .errors import ConfigError
 from .geometry import Geometry
@@ -337,10 +338,8 @@ class Pipeline:
         cfg, m = self.config, self.n_devices
         stft = beamform.StreamingStft(m, frame_samples=cfg.frame_samples, hop_samples=cfg.hop_samples)
         spectra = stft.process(np.zeros((cfg.hop_samples, m), np.float32))
-        # every frame's energy and peak (the checker), every block's validity (the aligner)
-        _frame_stats(np.zeros(cfg.hop_samples, np.float32))
-        _block_valid(np.zeros((cfg.hop_samples, m), np.float32), np.ones(m, bool), np.zeros(m, bool),
-                     np.ones(m, bool), np.empty(m, np.bool_))
+        condition.compile_kernels(cfg.hop_samples)
+        align.compile_kernels(cfg.hop_samples, m)
         if self.tracker is not None:
             gcc = estimators.NoiseAwareGcc(m, n_fft=cfg.frame_samples, sample_rate_hz=cfg.working_rate_hz,
                                            hop_s=cfg.hop_samples / cfg.working_rate_hz, max_tdoa_s=cfg.max_tdoa_s,
@@ -348,25 +347,9 @@ class Pipeline:
             peak_tdoa, peak_value = gcc.process(spectra, speech_probability=0.0, valid=np.ones(m, bool))
             noise = gcc.noise_peaks()
             if m >= 2:
-                # the tracker's own kernels (births, association, the steered track's re-anchoring votes, its
-                # tracks' Kalman steps, the pauses' checks, the noise sources from the noise spectra): compiled
-                # by the first talker or the first mature noise spectra instead, they stalled that hop for
-                # 0.26-0.5 s on a first run (live: input overflows, an output underflow). One talker, heard then
-                # silent, and a noise source
-                tracker = estimators.SourceTracker(m, frame_period_s=cfg.hop_samples / cfg.working_rate_hz,
-                                                   sample_rate_hz=cfg.working_rate_hz)
-                hop_s = cfg.hop_samples / cfg.working_rate_hz
-                h = estimators.pair_matrix(m)
-                talker, source = h @ np.linspace(0.0, 1e-3, m), h @ np.linspace(0.0, -2e-3, m)
-                n_speech, n_frames = 10, 10 + int(0.4 / hop_s) + 2
-                for k in range(n_frames):
-                    for tdoa, value, first in ((peak_tdoa, peak_value, talker), (noise[0], noise[1], source)):
-                        tdoa[:] = np.linspace(-5e-3, 5e-3, tdoa.shape[1])
-                        tdoa[:, 0] = first
-                        value[:] = 0.05
-                        value[:, 0] = 0.5
-                    tracker.update(peak_tdoa, peak_value, speech_probability=1.0 if k < n_speech else 0.0,
-                                   usable=np.ones(m, bool), time_s=k * hop_s, noise_peaks=lambda: noise)
+                estimators.SourceTracker.compile_kernels(m, peak_tdoa, peak_value, noise,
+                                                         frame_period_s=cfg.hop_samples / cfg.working_rate_hz,
+                                                         sample_rate_hz=cfg.working_rate_hz)
         elif self.gcc is not None:
             estimators.GccPhat(m, n_fft=cfg.frame_samples, sample_rate_hz=cfg.working_rate_hz,
                                max_tdoa_s=cfg.max_tdoa_s).process(spectra, valid=np.ones(m, bool))
@@ -374,7 +357,7 @@ class Pipeline:
                              sample_rate_hz=cfg.working_rate_hz, weighting=cfg.weighting
                              ).process_spectra(spectra, np.zeros(m), valid=np.ones(m, bool))
         if m >= 2 and self.tracker is None and self._steering is None:
-            # the estimator's kernels (the tracker's Kalman tracks compile on their first update: the same kernel)
+            # the estimator's kernels
             estimator = make_estimator(cfg, m)
             n_pairs = m * (m - 1) // 2
             for _ in range(3):   # initialise, then update
