@@ -374,10 +374,9 @@ class SourceTracker:
                         frame_period_s: float, sample_rate_hz: float) -> None:
         """Compile (or load from numba's cache) every kernel a stream's tracker calls, before the stream: births,
         association, the steered track's re-anchoring votes, its tracks' Kalman steps, the pauses' checks and
-        the noise sources from the noise spectra (a column of their peak array: another layout). Compiled by the
-        first talker or the first mature noise spectra instead, they stalled that hop for 0.26-0.5 s on a first
-        run (live: input overflows, an output underflow). A throwaway tracker hears one talker, then silence,
-        and a noise source. ``peak_tdoa``/``peak_value`` and ``noise`` (``(peak_tdoa, peak_value,
+        the noise sources from the noise spectra. Compiled by the first talker or the first mature noise spectra
+        instead, they stalled that hop for 0.26-0.5 s on a first run (live: input overflows, an output
+        underflow). A throwaway tracker hears one talker, then silence, and a noise source. ``peak_tdoa``/``peak_value`` and ``noise`` (``(peak_tdoa, peak_value,
         correlation)``) are scratch arrays of the types the stream passes (a GCC stage's outputs): overwritten."""
         m = n_devices
         tracker = cls(m, frame_period_s=frame_period_s, sample_rate_hz=sample_rate_hz)
@@ -918,7 +917,10 @@ class SourceTracker:
             ok = pair_ok & (peak_value[:, rank] >= self.min_peak_value)
             if ok.sum() < self.n_devices - 1:
                 continue
-            fit = self._fit(peak_tdoa[:, rank], ok, usable, max_residual_s=2 * self.birth_max_residual_s)
+            # a contiguous copy of the column: the kernels see the layout they are compiled for (a column view
+            # compiled another specialisation of _solve_pairs, a 0.26 s stall the first time a noise source was fit)
+            tdoa = np.ascontiguousarray(peak_tdoa[:, rank])
+            fit = self._fit(tdoa, ok, usable, max_residual_s=2 * self.birth_max_residual_s)
             if fit is None:
                 continue
             toa, keep = fit
@@ -938,7 +940,7 @@ class SourceTracker:
                                    if s.kind == "speech"):
                     continue   # second peaks only refresh known sources; a talker's leak is no noise source
                 t = self._new_track("noise", time_s)
-                t.kalman.update(np.where(keep, peak_tdoa[:, rank], 0.0), keep.astype(float))
+                t.kalman.update(np.where(keep, tdoa, 0.0), keep.astype(float))
                 t.confirmed_s = time_s
                 t.quiet_activity = self.noise_quiet_activity + 0.1   # evidence that decays in the pauses
             t.n_hits += 1
