@@ -1,0 +1,42 @@
+"""``benchmarks/scenes.py``'s split of the distance to the oracle into steering and the engine's input."""
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def _bench():
+    name = "scenes_bench"
+    if name not in sys.modules:
+        spec = importlib.util.spec_from_file_location(name, REPO / "benchmarks" / "scenes.py")
+        mod = importlib.util.module_from_spec(spec)
+        sys.modules[name] = mod
+        spec.loader.exec_module(mod)
+    return sys.modules[name]
+
+
+def _row(snr, engine, true_toa, oracle):
+    return {"scene": f"s_{snr}_{engine}", "snr_db": snr,
+            "tracks": {"si_sdr_db": engine, "true_toa_db": true_toa, "oracle_db": oracle}}
+
+
+def test_the_distance_to_the_oracle_splits_into_steering_and_input_over_the_scenes_at_5_db_and_above():
+    gap_split = _bench().gap_split
+    rows = [_row(5, 1.0, 2.0, 2.5),        # steering -1.0, input -0.5
+            _row(10, 3.0, 3.5, 3.5),       # -0.5, 0.0
+            _row(20, 0.0, 2.0, 1.0),       # -2.0, +1.0
+            _row(0, -9.0, 5.0, 5.0),       # 0 dB: left out
+            _row(30, 1.0, float("nan"), 1.0)]   # no truth TOA: left out
+    split = gap_split(rows, "tracks")
+    assert split == {"steering_db": -1.0, "clocks_db": 0.0, "n": 3}
+    one = gap_split([_row(5, 1.0, 2.0, 2.5)], "tracks")
+    assert one["steering_db"] + one["clocks_db"] == pytest.approx(1.0 - 2.5)   # one scene: the two parts add up
+
+
+def test_no_scene_with_a_true_toa_figure_gives_no_split():
+    assert _bench().gap_split([_row(0, 1.0, 2.0, 2.5), _row(5, 1.0, float("nan"), 2.0)], "tracks") == {}
