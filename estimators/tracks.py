@@ -376,8 +376,9 @@ class SourceTracker:
         association, the steered track's re-anchoring votes, its tracks' Kalman steps, the pauses' checks and
         the noise sources from the noise spectra. Compiled by the first talker or the first mature noise spectra
         instead, they stalled that hop for 0.26-0.5 s on a first run (live: input overflows, an output
-        underflow). A throwaway tracker hears one talker, then silence, and a noise source. ``peak_tdoa``/``peak_value`` and ``noise`` (``(peak_tdoa, peak_value,
-        correlation)``) are scratch arrays of the types the stream passes (a GCC stage's outputs): overwritten."""
+        underflow). A throwaway tracker hears one talker, then silence, and a noise source. ``peak_tdoa``,
+        ``peak_value`` and ``noise`` (``(peak_tdoa, peak_value, correlation)``) are scratch arrays of the types
+        the stream passes (a GCC stage's outputs): overwritten."""
         m = n_devices
         tracker = cls(m, frame_period_s=frame_period_s, sample_rate_hz=sample_rate_hz)
         h = pair_matrix(m)

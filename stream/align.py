@@ -61,11 +61,11 @@ def _block_valid(samples, aligned, is_reference, covered, out):
     return out
 
 
-
 def compile_kernels(hop_samples: int, n_devices: int) -> None:
     """Compile (or load from numba's cache) this module's per-block kernel before a stream starts."""
     _block_valid(np.zeros((hop_samples, n_devices), np.float32), np.ones(n_devices, bool),
                  np.zeros(n_devices, bool), np.ones(n_devices, bool), np.empty(n_devices, np.bool_))
+
 
 class _SampleBuffer:
     """Growable float32 buffer: amortised O(1) appends, occasional compaction of the front.

@@ -247,9 +247,9 @@ def test_a_replay_as_fast_as_possible_does_not_depend_on_how_loaded_the_machine_
 def test_the_trackers_kernels_are_compiled_before_the_stream_not_at_its_first_talker():
     """numba compiles a kernel at its first call with each argument type (or loads it from its cache): the
     tracker's kernels, first called when the first talker is heard, stalled that hop for ~0.5 s on a first run
-    after an install or an update (live: input overflows); a noise source from the mature noise spectra (a column
-    of the peak array: another layout) for 0.26 s (an output underflow); the checker's and the aligner's, in the
-    stream's first block. The pipeline calls them once when it is built; then a talker, a pause and a noise
+    after an install or an update (live: input overflows); a noise source from the mature noise spectra (then
+    fit on a column view of the peak array: another layout) for 0.26 s (an output underflow); the checker's and
+    the aligner's, in the stream's first block. The pipeline calls them once when it is built; then a talker, a pause and a noise
     source compile nothing. Checked in a fresh interpreter, where no other test has called them."""
     import subprocess
     import sys
