@@ -11,7 +11,10 @@ N best GCC-PHAT peaks of every pair (:class:`estimators.multipeak.NoiseAwareGcc`
   nearest its predicted TDOA ``H0 (toa + dt rate)`` within a gate of three predicted standard deviations
   (at least ``gate_min_s``, at most ``gate_max_s``); the track updates with the pairs it took (the others
   are left out, confidence 0). A *hit* is an update that used at least ``min_pair_fraction`` of the usable
-  pairs and was not gated as clutter.
+  pairs and was not gated as clutter. A pair where a noise source found in the pauses (below) is predicted within
+  ``noise_near_s`` of a talker track's prediction is left out of that track's update (``n_pairs_near_noise`` in
+  the report): there the noise's peak merges with the talker's into one lobe or sits beside it, and the nearest
+  peak may be the noise's, a bias of a sample or two that holds as long as the sources do.
 - **Birth** (speech frames only): from the peaks no track took, the highest of every pair, a robust
   least-squares TOA fit (eq. 12; pairs off by more than ``birth_max_residual_s`` dropped, then refitted)
   whose kept pairs are self-consistent, cover at least ``min_pair_fraction`` of the usable pairs and
@@ -287,6 +290,9 @@ class SourceTracker:
         A noise source born on non-speech frames is confirmed when hit in ``quiet_confirm_share`` of the
         non-speech frames of its first ``quiet_confirm_s`` (module doc); ``quiet_confirm_s=None``: noise sources
         come from the noise spectra only (the tracker before 2026-11-27).
+    noise_near_s : float or None
+        A pair where a noise source found in the pauses is predicted within this of a talker track's prediction
+        is left out of that track's update (module doc; 3 samples at 16 kHz); None or 0: never.
     """
 
     latency_frames = 0   # causal: the steered TOA is the current frame's
@@ -300,7 +306,7 @@ class SourceTracker:
                  activity_time_constant_s: float = 0.4, switch_ratio: float = 1.5, same_source_s: float = 2e-4,
                  noise_every_s: float = 0.25, noise_quiet_activity: float = 0.3,
                  max_rate_s_per_s: float = 3e-3, quiet_confirm_s: float | None = 0.5,
-                 quiet_confirm_share: float = 0.7) -> None:
+                 quiet_confirm_share: float = 0.7, noise_near_s: float | None = 1.875e-4) -> None:
         if int(n_devices) != n_devices or n_devices < 2:
             raise ValueError(f"{n_devices=} must be an integer >= 2")
         if target not in ("active-talker", "nearest"):
@@ -342,6 +348,7 @@ class SourceTracker:
         self.quiet_confirm_frames = (None if quiet_confirm_s is None
                                      else max(1, int(round(quiet_confirm_s / self.frame_period_s))))
         self.quiet_confirm_share = float(quiet_confirm_share)
+        self.noise_near_s = None if not noise_near_s else float(noise_near_s)
         self.young_s = 3.0
         self._bin_s = 2.0 / self.sample_rate_hz
         self._n_bins = 2 * int(math.ceil(0.02 / self._bin_s)) + 1          # moves up to +-20 ms
@@ -406,6 +413,7 @@ class SourceTracker:
             self.n_births = 0
             self.n_reanchored = 0
             self.n_taken_over = 0
+            self.n_pairs_near_noise = 0
             self._next_id = 0
             self._last_time_s = 0.0
         else:
@@ -458,6 +466,7 @@ class SourceTracker:
                 "n_frames": self.n_frames, "n_speech_frames": self.n_speech_frames, "n_births": self.n_births,
                 "speech_s": round(self.n_speech_frames * self.frame_period_s, 3),
                 "n_reanchored": self.n_reanchored, "n_taken_over": self.n_taken_over,
+                "n_pairs_near_noise": self.n_pairs_near_noise,
                 "tracks": [t.summary() for t in sorted(self.ended + self.tracks, key=lambda t: t.track_id)
                            if t.kind != "tentative" or t.n_hits >= self.confirm_hits],
                 "switches": self.switches}
@@ -543,13 +552,17 @@ class SourceTracker:
         hit_any = False
         min_pairs = max(2, int(math.ceil(self.min_pair_fraction * n_ok)))
         k, picked = np.empty(self.n_pairs, np.int64), np.empty(self.n_pairs, bool)
+        noise_pred = ([self._predicted(n)[0] for n in self.tracks if n.kind == "noise" and n.quiet_origin]
+                      if self.noise_near_s else [])
         for t in order:
             if t.quiet_born:   # a noise candidate counts non-speech frames only
                 continue
             pred, gate = self._predicted(t)
+            # (on the frame's prediction, before any re-anchoring below)
+            ok = self._clear_of_noise(pred, noise_pred, pair_ok, min_pairs) if t.kind != "noise" else pair_ok
             if t is self.steered and self._reanchor(t, peak_tdoa, peak_value, pred, pair_ok):
                 pred, gate = self._predicted(t)
-            took, conf = self._match(t, pred, gate, peak_tdoa, peak_value, pair_ok, used, min_pairs, k, picked)
+            took, conf = self._match(t, pred, gate, peak_tdoa, peak_value, ok, used, min_pairs, k, picked)
             hit = False
             if conf is not None:
                 if not t.kalman.gated:
@@ -578,6 +591,24 @@ class SourceTracker:
             self._take_over(time_s)
         self._used = used
         return hit_any
+
+    def _clear_of_noise(self, pred: np.ndarray, noise_pred: list[np.ndarray], pair_ok: np.ndarray,
+                        min_pairs: int) -> np.ndarray:
+        """``pair_ok`` without the pairs where a noise source found in the pauses is predicted within
+        ``noise_near_s`` of ``pred`` (a talker track's predicted TDOAs), unless fewer than ``max(min_pairs, 3)``
+        pairs would be left."""
+        if not noise_pred:
+            return pair_ok
+        near = np.zeros(self.n_pairs, bool)
+        for p in noise_pred:
+            near |= np.abs(p - pred) < self.noise_near_s
+        if not near.any():
+            return pair_ok
+        keep = pair_ok & ~near
+        if int(keep.sum()) < max(min_pairs, 3):
+            return pair_ok
+        self.n_pairs_near_noise += int((pair_ok & near).sum())
+        return keep
 
     def _match(self, t: Track, pred, gate, peak_tdoa, peak_value, pair_ok, used, min_pairs, k, picked):
         """Per pair the unused peak nearest ``t``'s prediction within its gate (into ``k``, ``picked``), kept if

@@ -385,3 +385,33 @@ def test_clock_drift_is_followed_through_a_long_pause():
         tr.update(tdoa, value, speech_probability=0.0, usable=USABLE, time_s=t)
         t += DT
     assert np.max(np.abs(tr.steered_toa_s - (TALKER_A + drift * t))) < 1e-4
+
+
+@pytest.mark.parametrize("noise_near_s", [1.875e-4, None])
+def test_a_pair_where_the_noise_sits_beside_the_talker_is_left_out_of_the_talker_update(noise_near_s):
+    """A noise source found in the pauses sits 1.5 samples from the talker on pair (0, 1) and nowhere near it
+    on the others; there the two merge into one peak, at the louder noise's TDOA. The talker's track leaves
+    that pair out and stays on the talker; taking the nearest peak there (``noise_near_s=None``, the tracker
+    before 2026-11-27) pulls devices 0 and 1 apart by a steady fraction of a sample."""
+    noise = np.array([0.0, TALKER_A[1] - 1.5 / FS, 5e-3, -3e-3, -2e-3])
+    rng = np.random.default_rng(11)
+    tr = _tracker(noise_near_s=noise_near_s)
+    t, errors = 0.0, []
+    for k in range(int(4.0 / DT)):
+        alone = t < 1.0
+        tdoa, value = _peaks([(noise, 0.6)] + ([] if alone else [(TALKER_A, 0.35)]), rng, jitter_samples=0.1)
+        if not alone:   # pair (0, 1): one lobe, at the louder noise's TDOA
+            tdoa[0, 1], value[0, 1] = rng.uniform(-0.01, 0.01), 0.05
+        toa = tr.update(tdoa, value, speech_probability=0.0 if alone else 1.0, usable=USABLE, time_s=t)
+        if t >= 2.0:
+            errors.append((toa - TALKER_A) * FS)
+        t += DT
+    errors = np.array(errors)
+    assert tr.steered is not None and tr.steered.kind == "speech"
+    bias = abs(np.mean(errors[:, 1]))
+    if noise_near_s is None:
+        assert bias > 0.2
+        assert tr.report()["n_pairs_near_noise"] == 0
+    else:
+        assert bias < 0.1
+        assert tr.report()["n_pairs_near_noise"] > 0
