@@ -397,10 +397,10 @@ def test_a_pair_where_the_noise_sits_beside_the_talker_is_left_out_of_the_talker
     rng = np.random.default_rng(11)
     tr = _tracker(noise_near_s=noise_near_s)
     t, errors = 0.0, []
-    for k in range(int(4.0 / DT)):
+    for _ in range(int(4.0 / DT)):
         alone = t < 1.0
         tdoa, value = _peaks([(noise, 0.6)] + ([] if alone else [(TALKER_A, 0.35)]), rng, jitter_samples=0.1)
-        if not alone:   # pair (0, 1): one lobe, at the louder noise's TDOA
+        if not alone:   # pair (0, 1): one lobe, at the louder noise's TDOA (column 1, by height: the talker's peak)
             tdoa[0, 1], value[0, 1] = rng.uniform(-0.01, 0.01), 0.05
         toa = tr.update(tdoa, value, speech_probability=0.0 if alone else 1.0, usable=USABLE, time_s=t)
         if t >= 2.0:
