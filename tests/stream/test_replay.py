@@ -249,8 +249,9 @@ def test_the_trackers_kernels_are_compiled_before_the_stream_not_at_its_first_ta
     tracker's kernels, first called when the first talker is heard, stalled that hop for ~0.5 s on a first run
     after an install or an update (live: input overflows); a noise source from the mature noise spectra (then
     fit on a column view of the peak array: another layout) for 0.26 s (an output underflow); the checker's and
-    the aligner's, in the stream's first block. The pipeline calls them once when it is built; then a talker, a pause and a noise
-    source compile nothing. Checked in a fresh interpreter, where no other test has called them."""
+    the aligner's, in the stream's first block. The pipeline calls them once when it is built; then a talker, a
+    pause and a noise source compile nothing. Checked in a fresh interpreter, where no other test has called
+    them."""
     import subprocess
     import sys
     import textwrap
