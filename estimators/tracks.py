@@ -58,7 +58,10 @@ N best GCC-PHAT peaks of every pair (:class:`estimators.multipeak.NoiseAwareGcc`
 - **Steering** (``target``): ``"active-talker"`` steers at the speech track with the highest activity (an
   exponential average over speech frames, time constant ``activity_time_constant_s``, of the matched peak
   heights of its hits summed over the pairs and divided by the usable pairs: a track that explains few pairs
-  scores low) and switches when another's activity exceeds the steered one's by ``switch_ratio``;
+  scores low) and switches when another's activity exceeds the steered one's by ``switch_ratio`` and that
+  track is heard now (a hit within the last ``QUIET_S`` of speech frames). A turn is taken faster: once the
+  steered talker has had no hit for ``QUIET_S`` of speech frames, the beam moves to the talker track hit in this
+  frame whose activity over the last ``FAST_ACTIVITY_S`` exceeds the steered one's by ``switch_ratio``;
   ``"nearest"`` steers at the speech track heard earliest by device ``target_device`` relative to the mean
   of all devices (clock offsets cancel between tracks), among tracks with a hit in the last
   ``forget_after_s``. With no confirmed speech track nothing is steered (the caller outputs the average of the
@@ -89,6 +92,8 @@ MAX_DRIFT_RATE_S_PER_S = 2.5e-4   # relative TOA rate two clocks at +-100 ppm (a
 TargetPolicy = Literal["active-talker", "nearest"]
 NOISE_SAME_S = 2.5e-4            # a talker track this close to a noise source found in the pauses (every device) is it
 TAKEOVER_S = 1e-3                 # a new talker track this close to the steered one (every device) is its talker
+QUIET_S = 0.048                   # the steered talker unheard for this long (speech frames): another may take the turn
+FAST_ACTIVITY_S = 0.1             # ... the one most active over about this long (speech frames)
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
@@ -228,6 +233,8 @@ class Track:
     #                                  divided by the usable pairs (0 without a hit)
     hit_now: bool = False            # hit in the last speech frame
     hit_value: float = 0.0           # and its matched peak heights summed over the pairs / usable pairs
+    miss_run: int = 0                # speech frames since its last hit
+    fast_activity: float = 0.0       # as ``activity``, over FAST_ACTIVITY_S
     anchor_votes: np.ndarray | None = field(default=None, repr=False)   # (M, bins): see SourceTracker._reanchor
     drift_rate_s_per_s: np.ndarray | None = None   # EMA over its hits (3 s) of its TOA rates: clock drift
     quiet_activity: float = 0.0      # EMA over non-speech frames of "its peaks are there" (0 or 1)
@@ -337,6 +344,8 @@ class SourceTracker:
         self.confirm_window_s = float(confirm_window_s)
         self.forget_after_s = float(forget_after_s)
         self.activity_beta = 1.0 - math.exp(-self.frame_period_s / float(activity_time_constant_s))
+        self._fast_beta = 1.0 - math.exp(-self.frame_period_s / FAST_ACTIVITY_S)
+        self._turn_frames = max(1, int(round(QUIET_S / self.frame_period_s)))
         self.switch_ratio = float(switch_ratio)
         self.same_source_s = float(same_source_s)
         self.noise_every_frames = max(1, int(round(noise_every_s / self.frame_period_s)))
@@ -577,6 +586,8 @@ class SourceTracker:
             self._hold_still(t, quiet=False)
             if t.kind == "speech":
                 t.activity += self.activity_beta * ((value if hit else 0.0) - t.activity)
+                t.fast_activity += self._fast_beta * ((value if hit else 0.0) - t.fast_activity)
+                t.miss_run = 0 if hit else t.miss_run + 1
             if t.kind != "tentative":
                 # a noise track that starts being hit on speech frames (a talker whose breath or the room of
                 # the recording was heard before the first word) turns talker within about half a second
@@ -1048,9 +1059,18 @@ class SourceTracker:
         if current is None:
             if best.activity > 0:
                 self._switch(None, best, time_s, reason or f"first talker track {best.track_id}")
-        elif best is not current and speech and best.activity > self.switch_ratio * current.activity:
+        elif best is not current and speech and best.activity > self.switch_ratio * current.activity \
+                and best.miss_run < self._turn_frames:
             self._switch(current, best, time_s,
                          f"track {best.track_id} more active ({best.activity:.2f} vs {current.activity:.2f})")
+        elif speech and current.miss_run >= self._turn_frames:
+            # a turn: the steered talker has gone quiet and another talker is heard now
+            heard = [t for t in talkers if t.miss_run == 0]
+            new = max(heard, key=lambda t: t.fast_activity) if heard else None
+            if new is not None and new.fast_activity > self.switch_ratio * current.fast_activity:
+                self._switch(current, new, time_s,
+                             f"track {new.track_id} heard, track {current.track_id} quiet for "
+                             f"{current.miss_run * self.frame_period_s:.2f} s of speech")
 
     @property
     def _last_id(self) -> int:

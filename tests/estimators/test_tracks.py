@@ -415,3 +415,54 @@ def test_a_pair_where_the_noise_sits_beside_the_talker_is_left_out_of_the_talker
     else:
         assert bias < 0.1
         assert tr.report()["n_pairs_near_noise"] > 0
+
+
+def _turns(tr, rng, schedule):
+    """Feed ``schedule`` [(seconds, toa)] (speech throughout) and return, for each turn after the first, the
+    seconds until the beam is on the new talker, and the switches' reasons."""
+    t, latencies = 0.0, []
+    for n, (dur, talker) in enumerate(schedule):
+        on = None
+        for k in range(int(dur / DT)):
+            tdoa, value = _peaks([(talker, 0.5)], rng)
+            toa = tr.update(tdoa, value, speech_probability=1.0, usable=USABLE, time_s=t)
+            if on is None and np.max(np.abs(toa - talker)) < 2.5e-4:
+                on = k * DT
+            t += DT
+        if n:
+            latencies.append(on)
+    return latencies, [s["reason"] for s in tr.report()["switches"]]
+
+
+def test_a_turn_to_a_known_talker_moves_the_beam_once_the_steered_one_is_quiet():
+    """A, B, A, B with no pause between them (both tracks known after the first two turns): once the steered
+    talker has had no hit for QUIET_S of speech frames and the other is heard, the beam moves, without waiting
+    for the 0.4 s activity averages to cross (measured: 0.08 s per turn back, 0.35 s by the averages alone)."""
+    from estimators.tracks import QUIET_S
+    schedule = [(2.0, TALKER_A), (2.0, TALKER_B), (2.0, TALKER_A), (2.0, TALKER_B)]
+    fast, reasons = _turns(_tracker(), np.random.default_rng(3), schedule)
+    slow_tracker = _tracker()
+    slow_tracker._turn_frames = 10 ** 9          # the activity averages alone (the tracker before 2026-11-28)
+    slow, _ = _turns(slow_tracker, np.random.default_rng(3), schedule)
+    assert all(x is not None and x <= QUIET_S + 3 * DT for x in fast[1:]), fast
+    assert all(x is not None and x >= 0.25 for x in slow[1:]), slow
+    assert sum("quiet for" in r for r in reasons) >= 2, reasons
+
+
+def test_a_talker_missed_for_less_than_the_quiet_span_keeps_the_beam():
+    """A speaks; now and then, for two frames (under QUIET_S), only a reflection of A (two devices moved by a
+    millisecond) stands out: the reflection may get a track, but the beam stays on A all the time."""
+    from estimators.tracks import QUIET_S
+    assert 2 * DT < QUIET_S
+    rng = np.random.default_rng(5)
+    tr = _tracker()
+    reflection = TALKER_A + np.array([0.0, 1e-3, 0.0, -1e-3, 0.0])
+    t, steered = 0.0, []
+    for k in range(int(4.0 / DT)):
+        source = (reflection, 0.5) if k > 30 and k % 20 in (0, 1) else (TALKER_A, 0.5)
+        tdoa, value = _peaks([source], rng)
+        steered.append(tr.update(tdoa, value, speech_probability=1.0, usable=USABLE, time_s=t).copy())
+        t += DT
+    late = np.array(steered[30:])
+    assert np.max(np.abs(late - TALKER_A)) < 2.5e-4
+    assert len(tr.report()["switches"]) == 1
