@@ -561,12 +561,14 @@ class SourceTracker:
         hit_any = False
         min_pairs = max(2, int(math.ceil(self.min_pair_fraction * n_ok)))
         k, picked = np.empty(self.n_pairs, np.int64), np.empty(self.n_pairs, bool)
-        noise_pred = ([self._predicted(n)[0] for n in self.tracks if n.kind == "noise" and n.quiet_origin]
-                      if self.noise_near_s else [])
+        # noise sources found in the pauses: predicted once, for the talker tracks' pairs and their own update
+        noise = ({id(n): self._predicted(n) for n in self.tracks if n.kind == "noise" and n.quiet_origin}
+                 if self.noise_near_s else {})
+        noise_pred = [pred for pred, _ in noise.values()]
         for t in order:
             if t.quiet_born:   # a noise candidate counts non-speech frames only
                 continue
-            pred, gate = self._predicted(t)
+            pred, gate = noise[id(t)] if id(t) in noise else self._predicted(t)
             # (on the frame's prediction, before any re-anchoring below)
             ok = self._clear_of_noise(pred, noise_pred, pair_ok, min_pairs) if t.kind != "noise" else pair_ok
             if t is self.steered and self._reanchor(t, peak_tdoa, peak_value, pred, pair_ok):
