@@ -28,10 +28,12 @@ N best GCC-PHAT peaks of every pair (:class:`estimators.multipeak.NoiseAwareGcc`
   the non-speech frames of its first ``quiet_confirm_s`` (a speech frame before that ends it: a talker's onset,
   heard before the detector fires, is far shorter); such a track follows its peaks on non-speech frames, and in
   speech frames it takes its source's peaks after the talkers, so that no talker track is born on them though
-  the detector calls every frame speech while it sounds (a dish clatter fires Silero). It turns talker only
+  the detector calls every frame speech while it sounds (a dish clatter fires Silero); there its gate stays
+  capped however young it is (an open gate took the talker's peaks at the first word). It turns talker only
   once the pauses are quiet of it. The noise spectra correct it when they agree on all devices but one (a
   single pause's peaks may put one device on a reflection). A talker track within ``NOISE_SAME_S`` of it on
-  every device (born on the noise's peaks where its gate missed them) is that noise source, and goes.
+  every device, or on every device but one (at least four agreeing, up to a common shift: born on the noise's
+  peaks where its gate missed them, one device on another peak), is that noise source, and goes.
 - **Labels**: a track is ``"speech"`` when it was born and confirmed on speech frames; it becomes ``"noise"``
   when its activity does not follow speech presence: on non-speech frames (plain PHAT peaks) every track is
   checked, without an update, for its peaks (from 0.3 s after the last speech frame on, past a talker's
@@ -543,15 +545,19 @@ class SourceTracker:
             self.steered_toa_s = np.zeros(self.n_devices)
         return self.steered_toa_s
 
-    def _predicted(self, t: Track) -> tuple[np.ndarray, np.ndarray]:
-        """Predicted pair TDOAs (n_pairs,) and their gate half-widths (n_pairs,), seconds."""
+    def _predicted(self, t: Track, *, speech: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """Predicted pair TDOAs (n_pairs,) and their gate half-widths (n_pairs,), seconds; ``speech``: for a
+        speech frame's association."""
         kf = t.kalman._kf
         pred, gate = np.empty(self.n_pairs), np.empty(self.n_pairs)
         # the cap keeps a tracked source from wandering onto clutter; in a young track a device it has not
         # pinned down yet (its spread is far wider) keeps its whole gate, so that it can be picked up or
-        # corrected; later a wide spread means the track went unhit for long, and it must not jump
+        # corrected; later a wide spread means the track went unhit for long, and it must not jump. A noise
+        # source is corrected in the pauses only: in a speech frame a young noise track's open gate takes the
+        # talker's peaks at the first word, and the talker's track is then born on the noise (seed 11's `s10`)
+        young = self._time_s - t.born_s < self.young_s and not (speech and t.kind == "noise")
         _predict_gate(kf.x, kf.P, self._H0, self.frame_period_s, self.gate_min_s, self.gate_max_s,
-                      self._time_s - t.born_s < self.young_s, pred, gate)
+                      young, pred, gate)
         return pred, gate
 
     def _associate(self, peak_tdoa, peak_value, pair_ok, n_ok, time_s) -> bool:
@@ -562,13 +568,14 @@ class SourceTracker:
         min_pairs = max(2, int(math.ceil(self.min_pair_fraction * n_ok)))
         k, picked = np.empty(self.n_pairs, np.int64), np.empty(self.n_pairs, bool)
         # noise sources found in the pauses: predicted once, for the talker tracks' pairs and their own update
-        noise = ({id(n): self._predicted(n) for n in self.tracks if n.kind == "noise" and n.quiet_origin}
+        noise = ({id(n): self._predicted(n, speech=True) for n in self.tracks
+                  if n.kind == "noise" and n.quiet_origin}
                  if self.noise_near_s else {})
         noise_pred = [pred for pred, _ in noise.values()]
         for t in order:
             if t.quiet_born:   # a noise candidate counts non-speech frames only
                 continue
-            pred, gate = noise[id(t)] if id(t) in noise else self._predicted(t)
+            pred, gate = noise[id(t)] if id(t) in noise else self._predicted(t, speech=True)
             # (on the frame's prediction, before any re-anchoring below)
             ok = self._clear_of_noise(pred, noise_pred, pair_ok, min_pairs) if t.kind != "noise" else pair_ok
             if t is self.steered and self._reanchor(t, peak_tdoa, peak_value, pred, pair_ok):
@@ -997,6 +1004,18 @@ class SourceTracker:
         """RMS over devices of the difference of two relative TOA vectors, seconds."""
         return float(np.sqrt(np.mean((a - b) ** 2)))
 
+    def _same_but_one(self, a: np.ndarray, b: np.ndarray) -> bool:
+        """Whether two relative TOA vectors agree as :meth:`_gap` within ``NOISE_SAME_S`` asks (a spread of
+        ``2 NOISE_SAME_S``) on every device but one, the odd one device 0 included (the others then agree up to a
+        common shift), with at least four agreeing: a talker track born on a noise source's peaks with one
+        device on another peak (a reflection, a lobe of the other source) is still that source (seed 8's `s08`:
+        eight talker tracks on the dishes, six of seven devices within 0.5 ms of the noise track, steered 2.4 s and
+        1.4 s before they went)."""
+        if self.n_devices < 5:
+            return False
+        d = np.sort(a - b)   # the spread without one device is least without the lowest or the highest
+        return min(d[-1] - d[1], d[-2] - d[0]) <= 2 * NOISE_SAME_S
+
     @staticmethod
     def _gap(a: np.ndarray, b: np.ndarray) -> float:
         """Largest difference over devices of two relative TOA vectors, seconds ("every device within")."""
@@ -1013,7 +1032,7 @@ class SourceTracker:
         for n in [t for t in self.tracks if t.quiet_origin and t.kind == "noise"]:
             n_toa = n.toa_s
             for t in [t for t in self.tracks if t.kind == "speech"]:
-                if self._gap(t.toa_s, n_toa) <= NOISE_SAME_S:
+                if self._gap(t.toa_s, n_toa) <= NOISE_SAME_S or self._same_but_one(t.toa_s, n_toa):
                     self._end(t, time_s, f"merged into noise track {n.track_id} (the same source, heard in the "
                                          "pauses)")
         # merge duplicates of the same kind (the younger goes)
