@@ -471,9 +471,10 @@ def test_a_talker_missed_for_less_than_the_quiet_span_keeps_the_beam():
 def test_a_noise_track_does_not_swing_onto_the_talker_who_starts_over_it():
     """A noise source heard alone, two of its devices not pinned down in the pauses (their peaks rare there:
     their spread is wide, the gate of a young track opens for them), then a talker starts over it, the noise's
-    peaks of those devices gone under the voice. The noise track keeps its source: in speech frames a noise track's gate
-    stays capped however young it is (seed 11's `s10`: the kitchen track jumped 3.4 ms onto the talker at its
-    first word, the talker's track was then born on the noise and steered for 5.8 s)."""
+    peaks of those devices gone under the voice. The noise track keeps its source: in speech frames a noise
+    track's gate stays capped however young it is (seed 11's `s10`: the white noise's track jumped 3.2 and 3.4 ms
+    on two devices onto the talker at the first word, the talker's track was then born on the noise and steered
+    for 5.8 s)."""
     rng = np.random.default_rng(11)
     tr = _tracker()
     t = 0.0
@@ -486,12 +487,12 @@ def test_a_noise_track_does_not_swing_onto_the_talker_who_starts_over_it():
     for d in (2, 4):   # devices 2 and 4 not pinned down in the pauses
         noise[0].kalman._kf.P[d - 1, d - 1] += (2e-3) ** 2
     H = pair_matrix(M)
-    of_2 = (H[:, 2] != 0) | (H[:, 4] != 0)
+    of_2_4 = (H[:, 2] != 0) | (H[:, 4] != 0)
     near = NOISE + np.r_[0.0, 0.0, 1.5e-3, 0.0, -0.8e-3]   # the talker: 1.5 and 0.8 ms off on devices 2 and 4
     steered = []
     for _ in range(int(2.0 / DT)):
         tdoa, value = _peaks([(near, 0.6), (NOISE, 0.4)], rng)
-        gone = of_2[:, None] & (np.abs(tdoa - (H @ NOISE)[:, None]) < 1e-4)
+        gone = of_2_4[:, None] & (np.abs(tdoa - (H @ NOISE)[:, None]) < 1e-4)
         value = np.where(gone, 0.0, value)             # the noise's peaks of devices 2 and 4 under the voice
         steered.append(tr.update(tdoa, value, speech_probability=1.0, usable=USABLE, time_s=t).copy())
         t += DT
