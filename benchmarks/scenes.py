@@ -33,7 +33,9 @@ Figures per scene and estimator:
 - ``toa_within_0p25ms``: fraction of the active talker's speech frames, from 2 s after the first speech, in
   which every device's steered TOA is within 0.25 ms of that talker's true TOA;
 - ``noise_steer_s``: seconds of speech frames in which the beam points at the noise source (every device
-  within 0.25 ms of the noise source's TOA);
+  within 0.25 ms of the noise source's TOA); ``noise_steer_but_one_s`` also counts the frames where every device
+  but one is (:func:`within_but_one`; from five devices on): a beam on the noise with one device on another peak
+  of it, which the issue's every-device figure does not count;
 - two talkers: ``turn_latency_s`` per turn change, the time until the steered TOA is within 0.25 ms of the new
   talker for 5 consecutive frames (the turn's length if never).
 
@@ -198,6 +200,17 @@ def _speech_len(f: str) -> float:
 
 
 # ----------------------------------------------------------------------------- scoring
+def within_but_one(err_s: np.ndarray, within_s: float) -> np.ndarray:
+    """Per frame, whether every device but one of ``err_s`` (n_frames, n_devices; relative-TOA errors with device
+    0's at 0) is within ``within_s`` of the truth as the every-device test asks (a spread of ``2 within_s``), the odd
+    one device 0 included (the others then agree up to a common shift). Fewer than five devices: every device."""
+    err_s = np.atleast_2d(err_s)
+    if err_s.shape[1] < 5:
+        return np.max(np.abs(err_s), axis=1) <= within_s
+    d = np.sort(err_s, axis=1)
+    return np.minimum(d[:, -1] - d[:, 1], d[:, -2] - d[:, 0]) <= 2 * within_s
+
+
 def _steer_figures(pipeline, fixture) -> dict:
     """TOA accuracy, noise steering and turn latency of a finished run (module doc)."""
     time_s, toa_s, _ = pipeline.toa_track()
@@ -220,9 +233,11 @@ def _steer_figures(pipeline, fixture) -> dict:
            "no_beam_speech_s": float(np.sum(no_beam & speaking.any(axis=1)) * hop_s)}
     if noise:
         truth = fixture.source_toa_at(noise[0].name, time_s)
-        e_n = np.max(np.abs((toa_s - toa_s[:, :1]) - (truth - truth[:, :1])), axis=1)
-        at_noise = (e_n <= WITHIN_S) & ~no_beam & ~on_active
+        d_n = (toa_s - toa_s[:, :1]) - (truth - truth[:, :1])
+        at_noise = (np.max(np.abs(d_n), axis=1) <= WITHIN_S) & ~no_beam & ~on_active
         out["noise_steer_s"] = float(np.sum(at_noise & speaking.any(axis=1)) * hop_s)
+        near_noise = (at_noise | within_but_one(d_n, WITHIN_S)) & ~no_beam & ~on_active
+        out["noise_steer_but_one_s"] = float(np.sum(near_noise & speaking.any(axis=1)) * hop_s)
     changes = np.flatnonzero(np.diff(active) != 0) + 1
     lat = []
     for n_c, c in enumerate(changes):
@@ -290,6 +305,7 @@ def summarise(rows: list[dict], estimators: list[str]) -> dict:
                     "ge_best_single": np.mean([x["si_sdr_db"] >= x["best_single_db"] for x in f]),
                     "toa_within_0p25ms": np.nanmedian([x["toa_within_0p25ms"] for x in f]),
                     "max_noise_steer_s": max(x.get("noise_steer_s", 0.0) for x in f),
+                    "max_noise_steer_but_one_s": max(x.get("noise_steer_but_one_s", 0.0) for x in f),
                 }
                 lat = [v for x in f for v in x.get("turn_latency_s", [])]
                 if lat:
@@ -317,6 +333,10 @@ def targets(rows: list[dict], est: str) -> dict:
         "max_noise_steer_s_any_scene": {"value": round(float(steer[0]), 3), "scene": steer[1], "need": "<= 1.0",
                                         "met": steer[0] <= 1.0},
     }
+    near = max((r[est].get("noise_steer_but_one_s", 0.0), r["scene"]) for r in rows)
+    # not the issue's figure: also a beam on the noise with one device on another peak (module doc)
+    out["max_noise_steer_but_one_s_any_scene"] = {"value": round(float(near[0]), 3), "scene": near[1],
+                                                  "need": "<= 1.0 (every device but one)", "met": near[0] <= 1.0}
     if lat:
         out["turn_latency_s"] = {"value": {"median": round(float(np.median(lat)), 3), "max": round(float(np.max(lat)), 3)},
                                  "need": "median <= 0.5, max <= 1.0",
