@@ -8,7 +8,7 @@ from .conventions import SPEED_OF_SOUND_M_S, pair_matrix, pairs, ppm_to_ratio, s
 from .gcc import GccPhat, gcc_phat, gcc_phat_spectra
 from .toa import FixedLagKalmanToa, KalmanToa, PinvToa, SubsetToa, ToaEstimator
 from .multipeak import NoiseAwareGcc
-from .tracks import SourceTracker, Track
+from .tracks import SourceTracker, Track, within_but_one
 from .chirps import ChirpDetector, ChirpTdoas, detect_chirps, extract_tdoas, gcc_phat_delays, linear_chirp, matched_filter
 from .hybrid_tdoa import (CalibrationResult, CrlbResult, HybridTdoaProblem, MicFrameScene, NoiseLevels, Scene,
                           RejectedMeasurement, crlb, estimate_noise_levels, mic_frame_error, random_initial_scene,
@@ -20,6 +20,7 @@ from .multi_array import (ArrayPose, CalibrationInputError, MultiArrayCalibratio
                           rigid_body_ransac, rotation_error_deg, translation_angle_error_deg)
 
 __all__ = [
+    "within_but_one",
     "ArrayPlacement",
     "Geometry",
     "GEOMETRY_FORMAT",

@@ -85,7 +85,7 @@ import numpy as np
 from .conventions import pair_matrix, pairs
 from .toa import KalmanToa
 
-__all__ = ["SourceTracker", "Track", "TrackKind", "TargetPolicy"]
+__all__ = ["SourceTracker", "Track", "TrackKind", "TargetPolicy", "within_but_one"]
 
 TrackKind = Literal["tentative", "speech", "noise"]
 GHOST_MEMORY_S = 3.0              # a removed ghost is not born again at the same TOA for this long
@@ -96,6 +96,21 @@ NOISE_SAME_S = 2.5e-4            # a talker track this close to a noise source f
 TAKEOVER_S = 1e-3                 # a new talker track this close to the steered one (every device) is its talker
 QUIET_S = 0.048                   # the steered talker unheard for this long (speech frames): another may take the turn
 FAST_ACTIVITY_S = 0.1             # ... the one most active over about this long (speech frames)
+
+
+def within_but_one(err_s: np.ndarray, within_s: float) -> np.ndarray:
+    """Per row of ``err_s`` ((n_frames, n_devices) or one vector: differences of two relative TOA vectors, device
+    0's at 0), whether every device is within ``within_s`` (the every-device test ``max |err| <= within_s``), or,
+    from five devices on, every device but one agrees as that test asks (a spread of ``2 within_s``), the odd one
+    device 0 included (the others then agree up to a common shift). A source with one device on another peak (a
+    reflection, a lobe of another source) is still that source: the tracker's twin rule for noise sources, and
+    ``benchmarks/scenes.py``'s ``noise_steer_but_one_s``. Seed 8's `s08`: eight talker tracks on the dishes, six
+    of seven devices within 0.5 ms of the noise track."""
+    err_s = np.atleast_2d(err_s)
+    if err_s.shape[1] < 5:
+        return np.max(np.abs(err_s), axis=1) <= within_s
+    d = np.sort(err_s, axis=1)   # the spread without one device is least without the lowest or the highest
+    return np.minimum(d[:, -1] - d[:, 1], d[:, -2] - d[:, 0]) <= 2 * within_s
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
@@ -1004,18 +1019,6 @@ class SourceTracker:
         """RMS over devices of the difference of two relative TOA vectors, seconds."""
         return float(np.sqrt(np.mean((a - b) ** 2)))
 
-    def _same_but_one(self, a: np.ndarray, b: np.ndarray) -> bool:
-        """Whether two relative TOA vectors agree as :meth:`_gap` within ``NOISE_SAME_S`` asks (a spread of
-        ``2 NOISE_SAME_S``) on every device but one, the odd one device 0 included (the others then agree up to a
-        common shift), with at least four agreeing: a talker track born on a noise source's peaks with one
-        device on another peak (a reflection, a lobe of the other source) is still that source (seed 8's `s08`:
-        eight talker tracks on the dishes, six of seven devices within 0.5 ms of the noise track, steered 2.4 s and
-        1.4 s before they went)."""
-        if self.n_devices < 5:
-            return False
-        d = np.sort(a - b)   # the spread without one device is least without the lowest or the highest
-        return min(d[-1] - d[1], d[-2] - d[0]) <= 2 * NOISE_SAME_S
-
     @staticmethod
     def _gap(a: np.ndarray, b: np.ndarray) -> float:
         """Largest difference over devices of two relative TOA vectors, seconds ("every device within")."""
@@ -1032,7 +1035,7 @@ class SourceTracker:
         for n in [t for t in self.tracks if t.quiet_origin and t.kind == "noise"]:
             n_toa = n.toa_s
             for t in [t for t in self.tracks if t.kind == "speech"]:
-                if self._gap(t.toa_s, n_toa) <= NOISE_SAME_S or self._same_but_one(t.toa_s, n_toa):
+                if within_but_one(t.toa_s - n_toa, NOISE_SAME_S)[0]:
                     self._end(t, time_s, f"merged into noise track {n.track_id} (the same source, heard in the "
                                          "pauses)")
         # merge duplicates of the same kind (the younger goes)

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from estimators import SourceTracker, pair_matrix
+from estimators import SourceTracker, pair_matrix, within_but_one
 
 FS = 16000.0
 DT = 256 / FS
@@ -27,10 +27,21 @@ TALKER_A = np.array([0.0, 3e-3, -2e-3, 1e-3, 4e-3])
 TALKER_B = np.array([0.0, -4e-3, 2.5e-3, -1e-3, 0.5e-3])
 NOISE = np.array([0.0, 1e-3, 5e-3, -3e-3, -2e-3])
 USABLE = np.ones(M, bool)
+W = 2.5e-4   # "within": the scenes' and the noise twin rule's 0.25 ms
 
 
 def _tracker(**kw):
     return SourceTracker(M, frame_period_s=DT, sample_rate_hz=FS, min_peak_value=0.15, **kw)
+
+
+def _noise_alone(tr, rng, seconds=1.0):
+    """``seconds`` of the noise alone (non-speech frames) into ``tr``; returns the time of the next frame."""
+    t = 0.0
+    for _ in range(int(seconds / DT)):
+        tdoa, value = _peaks([(NOISE, 0.6)], rng)
+        tr.update(tdoa, value, speech_probability=0.0, usable=USABLE, time_s=t)
+        t += DT
+    return t
 
 
 def test_turn_taking_moves_the_beam_within_half_a_second_and_never_to_the_noise():
@@ -305,11 +316,7 @@ def test_a_talker_track_on_a_noise_source_found_in_the_pauses_is_that_noise_sour
     where the source heard in the pauses is: it is that noise source, and goes (never steered)."""
     rng = np.random.default_rng(7)
     tr = _tracker()
-    t = 0.0
-    for _ in range(int(1.0 / DT)):   # the noise alone
-        tdoa, value = _peaks([(NOISE, 0.6)], rng)
-        tr.update(tdoa, value, speech_probability=0.0, usable=USABLE, time_s=t)
-        t += DT
+    t = _noise_alone(tr, rng)
     noise = [x for x in tr.tracks if x.kind == "noise"]
     assert len(noise) == 1 and noise[0].quiet_origin
     twin = tr._new_track("speech", t)   # as a birth on the noise's free peaks would make it
@@ -477,11 +484,7 @@ def test_a_noise_track_does_not_swing_onto_the_talker_who_starts_over_it():
     for 5.8 s)."""
     rng = np.random.default_rng(11)
     tr = _tracker()
-    t = 0.0
-    for _ in range(int(1.0 / DT)):   # the noise alone
-        tdoa, value = _peaks([(NOISE, 0.6)], rng)
-        tr.update(tdoa, value, speech_probability=0.0, usable=USABLE, time_s=t)
-        t += DT
+    t = _noise_alone(tr, rng)
     noise = [x for x in tr.tracks if x.kind == "noise"]
     assert len(noise) == 1
     for d in (2, 4):   # devices 2 and 4 not pinned down in the pauses
@@ -509,11 +512,7 @@ def test_a_talker_track_on_a_noise_source_but_one_device_is_that_noise_source(od
     two devices away from the noise source stays."""
     rng = np.random.default_rng(13)
     tr = _tracker()
-    t = 0.0
-    for _ in range(int(1.0 / DT)):   # the noise alone
-        tdoa, value = _peaks([(NOISE, 0.6)], rng)
-        tr.update(tdoa, value, speech_probability=0.0, usable=USABLE, time_s=t)
-        t += DT
+    t = _noise_alone(tr, rng)
     noise = [x for x in tr.tracks if x.kind == "noise"]
     assert len(noise) == 1 and noise[0].quiet_origin
     H = pair_matrix(M)
@@ -531,3 +530,19 @@ def test_a_talker_track_on_a_noise_source_but_one_device_is_that_noise_source(od
     assert twins[0] not in tr.tracks
     assert twins[0].death_reason.startswith(f"merged into noise track {noise[0].track_id}")
     assert twins[1] in tr.tracks
+
+
+def test_every_device_but_one_within_counts_any_odd_device_and_not_two():
+    err = np.array([
+        [0.0, 1e-4, -1e-4, 5e-5, 0.0, 1e-4],        # every device within
+        [0.0, 1e-4, -1e-4, 3e-3, 0.0, 1e-4],        # device 3 on another peak
+        [0.0, -2e-3, -2.1e-3, -1.9e-3, -2e-3, -2e-3],   # device 0 odd: the others agree up to a common shift
+        [0.0, 1e-4, 2e-3, 3e-3, 0.0, 1e-4],         # two devices off
+        [0.0, 3e-4, -3e-4, 3e-4, -3e-4, 0.0],       # a spread of 0.6 ms without any one device: not within
+    ])
+    assert within_but_one(err, W).tolist() == [True, True, True, False, False]
+
+
+def test_fewer_than_five_devices_need_every_device():
+    err = np.array([[0.0, 1e-4, 3e-3, 0.0], [0.0, 1e-4, -1e-4, 2e-4]])
+    assert within_but_one(err, W).tolist() == [False, True]
