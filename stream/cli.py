@@ -23,6 +23,9 @@ def _add_engine_options(p: argparse.ArgumentParser) -> None:
                         "whatever is loudest, a third of the CPU)")
     g.add_argument("--target", help="whom to steer at with --estimator tracks: 'active-talker' (default) or "
                                     "'nearest DEVICE' (the talker closest to a device, by name or index)")
+    g.add_argument("--tracker-lookahead-s", type=float,
+                   help="--estimator tracks: steer each frame by the tracker's decision this many seconds later "
+                        "(adds as much latency; default 0.128 for replay, 0 for live and network sources)")
     g.add_argument("--vad", help="speech-presence detector: auto (default: Silero, else WebRTC, else energy), "
                    "silero, webrtc or energy")
     g.add_argument("--gcc-weighting", choices=["subtract", "subtract-snr", "phat"],
@@ -315,7 +318,9 @@ def summary(report: dict[str, Any], out: Path) -> str:
                   if n_arrays else "")
         lines.append(f"  {st['n_devices']} devices{arrays} at {st['working_rate_hz']:g} Hz, frame {st['frame_samples']} / hop "
                      f"{st['hop_samples']}, {st['audio_s']:.1f} s of audio, output latency "
-                     f"{1e3 * st['output_latency_s']:.1f} ms")
+                     f"{1e3 * st['output_latency_s']:.1f} ms"
+                     + (f" (the tracker's look-ahead {1e3 * st['tracker_lookahead_s']:.0f} ms included)"
+                        if st.get("tracker_lookahead_s") else ""))
         lines.append(f"  estimator {report['settings']['estimator']}: {st['n_gated']} of {st['n_blocks']} frames gated"
                      f", {st['n_recentred']} re-centrings, coarse offsets (s) "
                      + " ".join(f"{o:+.3f}" for o in st["coarse_offsets_s"]))

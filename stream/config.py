@@ -72,6 +72,9 @@ class EngineConfig:
     switch_ratio: float = 1.5                      # activity ratio that moves the beam to another talker
     activity_time_constant_s: float = 0.4          # talker activity average over speech frames
     forget_after_s: float = 30.0                   # a track without a hit for this long is forgotten
+    # look-ahead (adds this much latency): frame t is steered by the tracker's decision at t + look-ahead (the
+    # steered track and its TOA then); 0 = causal, live's and the network's default (stream.live.LIVE_DEFAULTS)
+    tracker_lookahead_s: float = 0.128
     # coarse alignment
     align_window_s: float = 8.0
     max_offset_s: float = 4.0
@@ -160,6 +163,8 @@ class EngineConfig:
             raise ConfigError(f"gate_probability={self.gate_probability} must be in (0, 1)")
         if self.speed is not None and not self.speed > 0:
             raise ConfigError(f"speed={self.speed} must be > 0 (or absent for as fast as possible)")
+        if not (math.isfinite(self.tracker_lookahead_s) and 0 <= self.tracker_lookahead_s <= 2.0):
+            raise ConfigError(f"tracker_lookahead_s={self.tracker_lookahead_s} must be in 0..2 seconds")
         if self.smoother_lag_frames < 1:
             raise ConfigError(f"smoother_lag_frames={self.smoother_lag_frames} must be >= 1")
         self._validate_calibration()

@@ -28,7 +28,8 @@ log = logging.getLogger(__name__)
 # re-checked every 5 s
 # live and network streams use replay's estimator, the tracker (since 2026-11-27: its underflows at 48 kHz came from
 # the stream loop's stalls, now gone; it costs 12-16 % of a core here against 7-8 % for --estimator kalman: README)
-LIVE_DEFAULTS = {"align_window_s": 4.0, "max_offset_s": 0.5, "align_recheck_s": 5.0}
+LIVE_DEFAULTS = {"align_window_s": 4.0, "max_offset_s": 0.5, "align_recheck_s": 5.0,
+                 "tracker_lookahead_s": 0.0}   # causal: the look-ahead's latency would break live's budget
 
 
 class StatusLine:

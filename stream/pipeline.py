@@ -328,6 +328,12 @@ class Pipeline:
         self._recent: collections.deque = collections.deque(maxlen=RECENTRE_FRAMES)
         self._lag = int(self.estimator.latency_frames) if self.estimator is not None else 0
         self._delayed: collections.deque = collections.deque()
+        # tracker look-ahead: frames wait in `_ahead` until the decision this many frames later steers them
+        self.lookahead_frames = (int(round(config.tracker_lookahead_s * fs / config.hop_samples))
+                                 if self.tracker is not None else 0)
+        self._lag = max(self._lag, self.lookahead_frames)
+        self._ahead: collections.deque = collections.deque()
+        self._decision: tuple[int, bool, np.ndarray] = (-1, False, np.zeros(self.n_devices))
         self.compile_s = self._compile_kernels()
 
     def _compile_kernels(self) -> float:
@@ -403,6 +409,8 @@ class Pipeline:
         wait: the audio is done). Returns the hops produced, in order."""
         for block in (self.aligner.finish() if self._steering is None else ()):   # a steered pipeline is fed
             self.process_block(block)                                               # blocks, not frames
+        while self._ahead:     # the last `lookahead` frames: steered by the last decision (none will come)
+            self._steer_ahead()
         while self._delayed:   # the last `lag` frames: steered by the newest estimate (none will come)
             spectra, block, time_s, tdoa, valid = self._delayed.popleft()
             self._steer(spectra, block, time_s, tdoa, valid, self._fine_toa_s, False, -1, float("nan"))
@@ -474,13 +482,16 @@ class Pipeline:
                     h["kind"] = t.kind
                     h["time_s"].append(time_s)
                     h["toa_s"].append(coarse + t.toa_s)
-            if track_id < 0 and self.tracker.noise_at(fine):
-                # no talker tracked, and the devices' average at the coarse alignment would point at a tracked
-                # noise source: the output is the reference device, not a beam at the noise (otherwise the
-                # average: no louder than one device, with less of the room's reverberation and sensor noise)
-                valid = self._reference_only
-                valid[:] = False
-                valid[int(np.argmax(block.valid))] = True
+            # no talker tracked, and the devices' average at the coarse alignment would point at a tracked
+            # noise source: the output is the reference device, not a beam at the noise (otherwise the
+            # average: no louder than one device, with less of the room's reverberation and sensor noise)
+            fallback = track_id < 0 and self.tracker.noise_at(fine)
+            if self.lookahead_frames:
+                self._fine_toa_s = fine
+                self._look_ahead(t0, spectra, block, time_s, tdoa, gated, p_speech, track_id, fallback, coarse + fine)
+                return
+            if fallback:
+                valid = self._reference_only_of(block.valid)
         elif self.gcc is not None:
             tdoa_s, confidence = self.gcc.process(spectra, valid=block.valid)   # invalid device: confidence 0
             tdoa = TdoaFrame(block.seq, time_s, tdoa_s, confidence)
@@ -500,6 +511,37 @@ class Pipeline:
         self._steer(spectra, block, time_s, tdoa, valid, fine, gated, track_id, p_speech)
         self._recentre(fine, block)
         self.hop_times.add(1e3 * (time.perf_counter() - t0))
+
+    def _reference_only_of(self, valid: np.ndarray) -> np.ndarray:
+        out = self._reference_only
+        out[:] = False
+        out[int(np.argmax(valid))] = True
+        return out
+
+    def _look_ahead(self, t0: float, spectra, block: Block, time_s: float, tdoa: TdoaFrame, gated: bool,
+                    p_speech: float, track_id: int, fallback: bool, total_toa_s: np.ndarray) -> None:
+        """Tracker look-ahead: this frame waits ``lookahead`` frames, and the frame that many frames old is
+        steered by this frame's decision: the steered track at its newest total TOA (coarse offset + fine), or
+        the reference device when nothing is steered and the average would point at a noise source."""
+        self._ahead.append((spectra.copy(), block, time_s, tdoa, block.valid.copy(), gated, p_speech))
+        self._decision = (track_id, fallback, total_toa_s)
+        self._recentre(self._fine_toa_s, block)
+        if len(self._ahead) <= self.lookahead_frames:
+            self._pre_roll(t0)
+            return
+        self._steer_ahead()
+        self.hop_times.add(1e3 * (time.perf_counter() - t0))
+
+    def _steer_ahead(self) -> None:
+        spectra, block, time_s, tdoa, valid, gated, p_speech = self._ahead.popleft()
+        track_id, fallback, total_toa_s = self._decision
+        if track_id < 0:   # nothing steered: the devices' average at the coarse alignment
+            fine = np.zeros(self.n_devices)
+        else:
+            fine = total_toa_s - block.offsets_samples / self.config.working_rate_hz
+        if fallback:
+            valid = self._reference_only_of(valid)
+        self._steer(spectra, block, time_s, tdoa, valid, fine, gated, track_id, p_speech)
 
     def _steer(self, spectra, block: Block, time_s: float, tdoa: TdoaFrame, valid: np.ndarray, fine: np.ndarray,
                gated: bool, track_id: int, p_speech: float) -> None:

@@ -397,6 +397,7 @@ def _finalise(report, out, cfg, pipeline, layout, fixture, names, collector, t_w
             "output_latency_samples": pipeline.latency_samples,
             "output_latency_s": pipeline.latency_samples / fs,
             "algorithmic_latency_s": (cfg.frame_samples) / fs,
+            "tracker_lookahead_s": pipeline.lookahead_frames * cfg.hop_samples / fs,   # part of output_latency_s
             "audio_s": audio_s,
             "n_blocks": n_blocks,
             "n_gated": pipeline.counters.n_gated,
