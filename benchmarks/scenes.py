@@ -6,7 +6,8 @@ Run ``python benchmarks/scenes.py [--data ../shared/data] [--jobs 2] [--estimato
 Every scene is simulated with pyroomacoustics by ``replay_fixtures/build_fixtures.py`` (the same code as the
 shipped fixtures: real speech from ``audio/cmu-arctic-16k`` and ``audio/vctk-48k``, band-limited per-device
 clocks, exact timing truth) into a cache folder, replayed through the engine (``stream.run.run_replay``, the
-live path) once per estimator, and scored against its truth.
+live path) once per estimator with replay's defaults (the tracker's 0.128 s look-ahead included; ``--set
+tracker_lookahead_s=0`` for the causal tracker of ``live``), and scored against its truth.
 
 Scenes (``make_scenes``, 52 by default, seeded by ``--seed``):
 

@@ -572,7 +572,8 @@ def _scene_inputs(data: pathlib.Path, tmp: pathlib.Path) -> dict[str, list]:
 def bench_engine_tracks(repeats: int, data: pathlib.Path | None = None) -> dict:
     """The whole engine with the multi-source tracker (``estimator="tracks"``: Silero speech presence,
     noise-aware multi-peak GCC-PHAT, the bank of TOA tracks) against the same engine with the single
-    ``KalmanToa``, and the tracker with the WebRTC detector instead of Silero (``tracks_webrtc``), alternating
+    ``KalmanToa``, the tracker without replay's look-ahead (``tracks_causal``, live's setting) and with the WebRTC
+    detector instead of Silero (``tracks_webrtc``), alternating
     runs in this process, on real speech, frame 512, hop 128, working rate 16 kHz, 8 devices:
 
     - ``async_8dev``: the 8 device files of the shipped fixture as recorded (48 / 44.1 kHz: decoding and
@@ -592,6 +593,7 @@ def bench_engine_tracks(repeats: int, data: pathlib.Path | None = None) -> dict:
     m, fs, frame, hop = CPU_CONFIG
     fx = load_fixture(REPO / "replay_fixtures" / "async_8dev")
     variants = {"kalman": {"estimator": "kalman"}, "tracks": {"estimator": "tracks"},
+                "tracks_causal": {"estimator": "tracks", "tracker_lookahead_s": 0.0},   # live's setting
                 "tracks_webrtc": {"estimator": "tracks", "vad": "webrtc"}}
     cpu: dict[str, dict[str, list]] = {}
     block: dict[str, list] = {v: [] for v in variants}
@@ -836,7 +838,7 @@ def main(argv: list[str] | None = None) -> int:
     print("Whole engine with the multi-source tracker vs the single Kalman, real speech, 8 devices, working rate "
           "16 kHz, frame 512, hop 128")
     print(f"  speech presence: {result['tracks_vad_backend']}; FFT floor {result['tracks_fft_floor_ms_8x512']:.3f} ms/hop")
-    for est in ("kalman", "tracks", "tracks_webrtc"):
+    for est in ("kalman", "tracks", "tracks_causal", "tracks_webrtc"):
         print(f"  {est:13s} process_block median {result[f'engine_{est}_block_ms_median']:.3f} ms "
               f"({result[f'engine_{est}_block_ratio_to_fft_floor']:.1f} x floor) on async_8dev")
     by_input = result["engine_cpu_fraction_by_input"]
