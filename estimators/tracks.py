@@ -271,9 +271,17 @@ class Track:
     @property
     def toa_s(self) -> np.ndarray:
         """Current relative TOA, shape (n_devices,), seconds (``toa[0] = 0``)."""
+        return self._state(0)
+
+    @property
+    def toa_rate_s_per_s(self) -> np.ndarray:
+        """Current rate of the relative TOA, shape (n_devices,), seconds per second (``rate[0] = 0``)."""
+        return self._state(1)
+
+    def _state(self, part: int) -> np.ndarray:
         m = self.kalman.n_mics - 1
         out = np.zeros(m + 1)
-        out[1:] = self.kalman._kf.x[:m]
+        out[1:] = self.kalman._kf.x[part * m:(part + 1) * m]
         return out
 
     def summary(self) -> dict:

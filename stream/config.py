@@ -73,7 +73,8 @@ class EngineConfig:
     activity_time_constant_s: float = 0.4          # talker activity average over speech frames
     forget_after_s: float = 30.0                   # a track without a hit for this long is forgotten
     # look-ahead (adds this much latency): frame t is steered by the tracker's decision at t + look-ahead (the
-    # steered track and its TOA then); 0 = causal, live's and the network's default (stream.live.LIVE_DEFAULTS)
+    # steered track, its TOA then taken back to t along its rate); 0 = causal, live's and the network's default
+    # (stream.live.LIVE_DEFAULTS)
     tracker_lookahead_s: float = 0.128
     # coarse alignment
     align_window_s: float = 8.0

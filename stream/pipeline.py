@@ -333,7 +333,8 @@ class Pipeline:
                                  if self.tracker is not None else 0)
         self._lag = max(self._lag, self.lookahead_frames)
         self._ahead: collections.deque = collections.deque()
-        self._decision: tuple[int, bool, np.ndarray] = (-1, False, np.zeros(self.n_devices))
+        self._no_rate = np.zeros(self.n_devices)
+        self._decision: tuple = (-1, False, np.zeros(self.n_devices), self._no_rate, 0.0)
         self.compile_s = self._compile_kernels()
 
     def _compile_kernels(self) -> float:
@@ -488,7 +489,9 @@ class Pipeline:
             fallback = track_id < 0 and self.tracker.noise_at(fine)
             if self.lookahead_frames:
                 self._fine_toa_s = fine
-                self._look_ahead(t0, spectra, block, time_s, tdoa, gated, p_speech, track_id, fallback, coarse + fine)
+                rate = self.tracker.steered.toa_rate_s_per_s if track_id >= 0 else self._no_rate
+                self._look_ahead(t0, spectra, block, time_s, tdoa, gated, p_speech,
+                                 (track_id, fallback, coarse + fine, rate, time_s))
                 return
             if fallback:
                 valid = self._reference_only_of(block.valid)
@@ -519,12 +522,14 @@ class Pipeline:
         return out
 
     def _look_ahead(self, t0: float, spectra, block: Block, time_s: float, tdoa: TdoaFrame, gated: bool,
-                    p_speech: float, track_id: int, fallback: bool, total_toa_s: np.ndarray) -> None:
+                    p_speech: float, decision: tuple) -> None:
         """Tracker look-ahead: this frame waits ``lookahead`` frames, and the frame that many frames old is
-        steered by this frame's decision: the steered track at its newest total TOA (coarse offset + fine), or
-        the reference device when nothing is steered and the average would point at a noise source."""
+        steered by this frame's ``decision`` (track id, fallback, total TOA = coarse offset + fine, its rate, the
+        time): the steered track at its newest TOA taken back to the old frame's time along its TOA rate (the
+        Kalman state's velocity: a walking talker's TOA moves in those frames), or the reference device when
+        nothing is steered and the average would point at a noise source."""
         self._ahead.append((spectra.copy(), block, time_s, tdoa, block.valid.copy(), gated, p_speech))
-        self._decision = (track_id, fallback, total_toa_s)
+        self._decision = decision
         self._recentre(self._fine_toa_s, block)
         if len(self._ahead) <= self.lookahead_frames:
             self._pre_roll(t0)
@@ -534,11 +539,12 @@ class Pipeline:
 
     def _steer_ahead(self) -> None:
         spectra, block, time_s, tdoa, valid, gated, p_speech = self._ahead.popleft()
-        track_id, fallback, total_toa_s = self._decision
+        track_id, fallback, total_toa_s, rate, decided_s = self._decision
         if track_id < 0:   # nothing steered: the devices' average at the coarse alignment
             fine = np.zeros(self.n_devices)
         else:
-            fine = total_toa_s - block.offsets_samples / self.config.working_rate_hz
+            fine = (total_toa_s - rate * (decided_s - time_s)
+                    - block.offsets_samples / self.config.working_rate_hz)
         if fallback:
             valid = self._reference_only_of(valid)
         self._steer(spectra, block, time_s, tdoa, valid, fine, gated, track_id, p_speech)

@@ -1,6 +1,6 @@
 """The tracker's look-ahead (``tracker_lookahead_s``): frame t is steered by the decision the causal tracker makes
-at frame t + L (the steered track and its TOA then); the output is L hops later. Replay's default (0.128 s);
-live and network sources stay causal (their latency budget)."""
+at frame t + L (the steered track, its TOA then taken back along its TOA rate to frame t); the output is L hops
+later. Replay's default (0.128 s); live and network sources stay causal (their latency budget)."""
 from pathlib import Path
 
 import numpy as np
@@ -37,15 +37,19 @@ def test_each_frame_follows_the_decision_lookahead_frames_later(runs):
             == causal.report["stream"]["output_latency_samples"] + lag * cfg.hop_samples)
 
 
-def test_a_frame_is_steered_by_the_toa_lookahead_frames_later(runs):
+def test_a_frame_is_steered_by_the_toa_lookahead_frames_later_taken_back_along_its_rate(runs):
     causal, ahead = runs
     lag = 8
     ids_c = np.asarray(causal.pipeline.state.track_id)
     toa_c, toa_a = causal.pipeline.toa_track()[1], ahead.pipeline.toa_track()[1]
-    steered = ids_c[lag:] >= 0   # total TOA (coarse offset + fine): the causal run's, L frames on
-    assert steered.mean() > 0.5
-    np.testing.assert_allclose(toa_a[:-lag][steered], toa_c[lag:][steered], atol=1e-12)
-    np.testing.assert_allclose(toa_a[-lag:], np.repeat(toa_c[-1:], lag, axis=0), atol=1e-12)
+    steered = ids_c[lag:] >= 0   # total TOA (coarse offset + fine): the causal run's, L frames on, less its rate
+    assert steered.mean() > 0.5  # times the L frames (the tracker keeps rates within 3 ms/s)
+    back = np.abs(toa_a[:-lag][steered] - toa_c[lag:][steered])
+    print(f"taken back: median {1e6 * np.median(back):.2f} us, max {1e6 * back.max():.1f} us")
+    assert back.max() <= 3e-3 * 0.128 + 1e-9
+    assert np.median(back) < 2e-5 and (back > 1e-9).mean() > 0.5   # seated talkers: clock drift's few us
+    tail = np.abs(toa_a[-lag:] - toa_c[-1])   # the stream's end: the last decision, taken back 1..L frames
+    assert tail.max() <= 3e-3 * 0.128 + 1e-9
 
 
 def test_output_is_as_long_and_in_step(runs):
