@@ -326,13 +326,13 @@ class Pipeline:
         self._fine_toa_s = np.zeros(self.n_devices)
         self._last_offsets = np.zeros(self.n_devices, dtype=np.int64)
         self._recent: collections.deque = collections.deque(maxlen=RECENTRE_FRAMES)
-        self._lag = int(self.estimator.latency_frames) if self.estimator is not None else 0
-        self._delayed: collections.deque = collections.deque()
-        # tracker look-ahead: frames wait in `_ahead` until the decision this many frames later steers them
+        # frames wait in `_delayed` for `_lag` frames: a lagging estimator's TOA of them (the smoother), or the
+        # tracker's decision `lookahead_frames` later (the tracker itself is causal: latency_frames 0)
         self.lookahead_frames = (int(round(config.tracker_lookahead_s * fs / config.hop_samples))
                                  if self.tracker is not None else 0)
-        self._lag = max(self._lag, self.lookahead_frames)
-        self._ahead: collections.deque = collections.deque()
+        self._lag = (self.lookahead_frames if self.tracker is not None
+                     else int(self.estimator.latency_frames) if self.estimator is not None else 0)
+        self._delayed: collections.deque = collections.deque()
         self._no_rate = np.zeros(self.n_devices)
         self._decision: tuple = (-1, False, np.zeros(self.n_devices), self._no_rate, 0.0)
         self.compile_s = self._compile_kernels()
@@ -410,9 +410,10 @@ class Pipeline:
         wait: the audio is done). Returns the hops produced, in order."""
         for block in (self.aligner.finish() if self._steering is None else ()):   # a steered pipeline is fed
             self.process_block(block)                                               # blocks, not frames
-        while self._ahead:     # the last `lookahead` frames: steered by the last decision (none will come)
-            self._steer_ahead()
-        while self._delayed:   # the last `lag` frames: steered by the newest estimate (none will come)
+        while self._delayed:   # the last `lag` frames: steered by the newest estimate or decision (none will come)
+            if self.lookahead_frames:
+                self._steer_ahead()
+                continue
             spectra, block, time_s, tdoa, valid = self._delayed.popleft()
             self._steer(spectra, block, time_s, tdoa, valid, self._fine_toa_s, False, -1, float("nan"))
         if self.calibrator is not None:
@@ -506,9 +507,7 @@ class Pipeline:
             gated = False
         self._fine_toa_s = fine
         if self._lag:   # the estimate is `lag` frames old: steer the spectra of that frame with it
-            self._delayed.append((spectra.copy(), block, time_s, tdoa, valid.copy()))
-            if len(self._delayed) <= self._lag:
-                self._pre_roll(t0)
+            if not self._held(t0, (spectra.copy(), block, time_s, tdoa, valid.copy())):
                 return
             spectra, block, time_s, tdoa, valid = self._delayed.popleft()
         self._steer(spectra, block, time_s, tdoa, valid, fine, gated, track_id, p_speech)
@@ -528,17 +527,22 @@ class Pipeline:
         time): the steered track at its newest TOA taken back to the old frame's time along its TOA rate (the
         Kalman state's velocity: a walking talker's TOA moves in those frames), or the reference device when
         nothing is steered and the average would point at a noise source."""
-        self._ahead.append((spectra.copy(), block, time_s, tdoa, block.valid.copy(), gated, p_speech))
         self._decision = decision
         self._recentre(self._fine_toa_s, block)
-        if len(self._ahead) <= self.lookahead_frames:
+        if self._held(t0, (spectra.copy(), block, time_s, tdoa, block.valid.copy(), gated, p_speech)):
+            self._steer_ahead()
+            self.hop_times.add(1e3 * (time.perf_counter() - t0))
+
+    def _held(self, t0: float, frame: tuple) -> bool:
+        """Queue ``frame`` in ``_delayed``; while fewer than ``_lag`` frames wait, a silent hop and False."""
+        self._delayed.append(frame)
+        if len(self._delayed) <= self._lag:
             self._pre_roll(t0)
-            return
-        self._steer_ahead()
-        self.hop_times.add(1e3 * (time.perf_counter() - t0))
+            return False
+        return True
 
     def _steer_ahead(self) -> None:
-        spectra, block, time_s, tdoa, valid, gated, p_speech = self._ahead.popleft()
+        spectra, block, time_s, tdoa, valid, gated, p_speech = self._delayed.popleft()
         track_id, fallback, total_toa_s, rate, decided_s = self._decision
         if track_id < 0:   # nothing steered: the devices' average at the coarse alignment
             fine = np.zeros(self.n_devices)
