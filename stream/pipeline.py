@@ -38,6 +38,7 @@ from .messages import Block, Frame, FrameFlag, HopResult, TdoaFrame, ToaEstimate
 
 log = logging.getLogger(__name__)
 
+HEARD_S = 0.25        # a track hit this recently is heard (sources.png draws the rest as prediction)
 RECENTRE_FRAMES = 24   # frames whose median fine TOA decides a re-centring of the coarse alignment
 MAX_OFFSET_STD_S = 1e-3   # a calibrated clock offset moves the coarse alignment only when this certain
 
@@ -231,7 +232,7 @@ class PipelineState:
         self.enhanced = History(audio_cap)
         self.aligned_input = History(audio_cap)
         # tracker only: every confirmed track's TOA per frame (coarse offsets included), for the sources plot
-        self.source_tracks: dict = {}   # id -> {"kind", "time_s": History, "toa_s": History}
+        self.source_tracks: dict = {}   # id -> {"kind", "time_s": History, "toa_s": History, "heard": History}
 
 
 class Pipeline:
@@ -480,10 +481,11 @@ class Pipeline:
                     if h is None:
                         cap = self.state.history_cap
                         h = self.state.source_tracks[t.track_id] = {"kind": t.kind, "time_s": History(cap),
-                                                                    "toa_s": History(cap)}
+                                                                    "toa_s": History(cap), "heard": History(cap)}
                     h["kind"] = t.kind
                     h["time_s"].append(time_s)
                     h["toa_s"].append(coarse + t.toa_s)
+                    h["heard"].append(time_s - t.last_hit_s <= HEARD_S)
             # no talker tracked, and the devices' average at the coarse alignment would point at a tracked
             # noise source: the output is the reference device, not a beam at the noise (otherwise the
             # average: no louder than one device, with less of the room's reverberation and sensor noise)

@@ -220,14 +220,16 @@ def plot_source_tracks(
     One panel per device other than ``reference`` (at most ``max_devices``): its TOA relative to ``reference``
     (device 0, or the device the offsets were measured against when device 0 was left out) for every confirmed
     track (talker tracks in colour, noise tracks grey dashed), the frames in which a track was steered
-    drawn thick in black over it, and, when given, each true source as a dotted line.
+    drawn thick in black over it, and, when given, each true source as a dotted line. Where a track had no hit
+    for a while (``heard`` false) it is the filter's prediction only, drawn faint and thin.
 
     Parameters
     ----------
     path : str or Path
         Output PNG file.
     tracks : dict
-        ``id -> {"kind": str, "time_s": list, "toa_s": list of (M,) arrays}`` (``PipelineState.source_tracks``).
+        ``id -> {"kind": str, "time_s": list, "toa_s": list of (M,) arrays, "heard": list of bool (optional)}``
+        (``PipelineState.source_tracks``).
     time_s : ndarray, shape (n_frames,), seconds
         Frame times.
     steered_id : ndarray, shape (n_frames,), int
@@ -261,8 +263,16 @@ def plot_source_tracks(
             v = np.vstack(h["toa_s"])
             rel = 1e3 * (v[:, d] - v[:, r])
             noise = h["kind"] == "noise"
-            ax.plot(t, rel, "--" if noise else "-", color="0.6" if noise else colours[n_i % len(colours)],
-                    lw=0.9, label=(f"track {tid} ({h['kind']})" if p == 0 else None))
+            colour = "0.6" if noise else colours[n_i % len(colours)]
+            heard = np.asarray(h.get("heard", np.ones(len(t), bool)), bool)[:len(t)]
+            if len(heard) < len(t):
+                heard = np.r_[heard, np.ones(len(t) - len(heard), bool)]
+            # where the track had no hit for a while it is only the filter's prediction: faint and thin, so a
+            # drifting prediction is not read as a source that moved
+            ax.plot(t, np.where(heard, rel, np.nan), "--" if noise else "-", color=colour, lw=0.9,
+                    label=(f"track {tid} ({h['kind']})" if p == 0 else None))
+            if not heard.all():
+                ax.plot(t, np.where(heard, np.nan, rel), ":", color=colour, lw=0.7, alpha=0.45)
             on = np.isin(t, steer_times[steered_id == tid])
             if on.any():
                 ax.plot(t, np.where(on, rel, np.nan), "-", color="k", lw=2.6, alpha=0.55,
@@ -270,6 +280,7 @@ def plot_source_tracks(
         ax.set_ylabel(f"{names[d]} - {names[r]}\n(ms)")
         ax.grid(alpha=0.3)
     axes[0, 0].plot([], [], "-", color="k", lw=2.6, alpha=0.55, label="steered")
+    axes[0, 0].plot([], [], ":", color="0.4", lw=0.7, label="predicted (no hit)")
     axes[0, 0].legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8)
     axes[-1, 0].set_xlabel("time (s)")
     shown = f" ({n_panels} of {m - 1} devices)" if n_panels < m - 1 else ""

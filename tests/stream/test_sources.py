@@ -162,6 +162,11 @@ def test_two_talkers_taking_turns_the_beam_follows_each_turn(tmp_path):
     for c in np.flatnonzero(np.diff(active) != 0) + 1:
         run = np.convolve(on[c:].astype(int), np.ones(5, int), "valid")   # 5 frames on the new talker
         assert (run == 5).any() and np.argmax(run == 5) * hop_s < 1.0, (time_s[c], np.argmax(run == 5) * hop_s)
+    # sources.png draws a track solid where it was heard and faint where it is only predicted: the per-frame
+    # flag is in step with the track's times, and some track goes unheard for a while (a talker between turns)
+    tracks = outcome.pipeline.state.source_tracks
+    assert all(len(h["heard"]) == len(h["time_s"]) == len(h["toa_s"]) for h in tracks.values())
+    assert any(not all(h["heard"]) for h in tracks.values()) and all(any(h["heard"]) for h in tracks.values())
 
 
 def test_without_a_talker_or_a_noise_source_the_output_is_the_devices_average(tmp_path):
