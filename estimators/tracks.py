@@ -56,7 +56,8 @@ N best GCC-PHAT peaks of every pair (:class:`estimators.multipeak.NoiseAwareGcc`
   (``death_reason`` "a ghost of track N"); no track is born again at its TOA for ``GHOST_MEMORY_S``.
 - **Death**: a speech track without a hit for ``forget_after_s``, or a noise track not seen in the noise
   spectra for ``forget_after_s``; when the bank is full the least recently hit track that is not steered goes.
-  Two tracks of the same kind closer than ``same_source_s`` are merged (the younger goes).
+  Two tracks of the same kind closer than ``same_source_s`` are merged (the younger goes; when the younger is
+  steered, it stays and takes the older one's filter state).
 - **Steering** (``target``): ``"active-talker"`` steers at the speech track with the highest activity (an
   exponential average over speech frames, time constant ``activity_time_constant_s``, of the matched peak
   heights of its hits summed over the pairs and divided by the usable pairs: a track that explains few pairs
@@ -1054,7 +1055,15 @@ class SourceTracker:
                         self._distance(a.toa_s, b.toa_s) < self.same_source_s:
                     young = b if b.born_s >= a.born_s else a
                     if young is self.steered:
-                        young = a if young is b else b
+                        # the beam keeps its track, but with the older one's filter: a young track's TOA rate
+                        # comes from a few peaks around its birth (`two_talkers`: 2 ms/s, which carried the
+                        # beam 1 ms off its talker within 0.6 s of speech), the older one's from seconds of hits
+                        old = a if young is b else b
+                        young.kalman._kf.x[:] = old.kalman._kf.x
+                        young.kalman._kf.P[:] = old.kalman._kf.P
+                        if old.drift_rate_s_per_s is not None:
+                            young.drift_rate_s_per_s = old.drift_rate_s_per_s.copy()
+                        young = old
                     self._end(young, time_s, f"merged into track {(a if young is b else b).track_id}")
 
     def _steer(self, time_s: float, speech: bool) -> None:

@@ -546,3 +546,31 @@ def test_every_device_but_one_within_counts_any_odd_device_and_not_two():
 def test_fewer_than_five_devices_need_every_device():
     err = np.array([[0.0, 1e-4, 3e-3, 0.0], [0.0, 1e-4, -1e-4, 2e-4]])
     assert within_but_one(err, W).tolist() == [False, True]
+
+
+def test_a_young_steered_duplicate_keeps_the_beam_with_the_older_tracks_filter():
+    """Two talker tracks on one talker merge; when the younger one is steered it stays (no switch) but takes the
+    older one's filter: a young track's TOA rate comes from a few peaks around its birth (in the `two_talkers`
+    fixture 2 ms/s, carrying the beam 1 ms off its talker in 0.6 s of speech), the older one's from seconds
+    of hits (here the clock drift, 0.1 ms/s on device 1)."""
+    rng = np.random.default_rng(5)
+    tr = _tracker()
+    drift = np.array([0.0, 1e-4, 0.0, 0.0, 0.0])
+    t = 0.0
+    for _ in range(int(3.0 / DT)):
+        tdoa, value = _peaks([(TALKER_A + drift * t, 0.5)], rng)
+        tr.update(tdoa, value, speech_probability=1.0, usable=USABLE, time_s=t)
+        t += DT
+    old = tr.steered
+    assert old is not None and abs(old.toa_rate_s_per_s[1] - 1e-4) < 5e-5
+    young = tr._new_track("speech", t)
+    kf = young.kalman._kf
+    kf.x[:] = old.kalman._kf.x
+    kf.x[M - 1:] = 2e-3                      # the young track's rate: 2 ms/s on every device
+    young.confirmed_s = t
+    tr.steered = young
+    tr._housekeeping(t)
+    assert old not in tr.tracks and old.death_reason == f"merged into track {young.track_id}"
+    assert tr.steered is young and young in tr.tracks
+    np.testing.assert_allclose(young.toa_rate_s_per_s, old.toa_rate_s_per_s)
+    np.testing.assert_allclose(young.toa_s, old.toa_s)
