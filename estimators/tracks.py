@@ -279,6 +279,11 @@ class Track:
         """Current rate of the relative TOA, shape (n_devices,), seconds per second (``rate[0] = 0``)."""
         return self._state(1)
 
+    def take_filter(self, other: "Track") -> None:
+        """Take ``other``'s Kalman state and covariance (TOA and rate): the source it tracked is this track's."""
+        self.kalman._kf.x[:] = other.kalman._kf.x
+        self.kalman._kf.P[:] = other.kalman._kf.P
+
     def _state(self, part: int) -> np.ndarray:
         m = self.kalman.n_mics - 1
         out = np.zeros(m + 1)
@@ -702,8 +707,7 @@ class SourceTracker:
         for t in self.tracks:
             if t is not st and t.kind == "speech" and t.confirmed_s == time_s \
                     and self._gap(t.toa_s, st.toa_s) <= TAKEOVER_S:
-                st.kalman._kf.x[:] = t.kalman._kf.x
-                st.kalman._kf.P[:] = t.kalman._kf.P
+                st.take_filter(t)
                 st.last_hit_s = time_s
                 self.n_taken_over += 1
                 self._end(t, time_s, f"taken over by the steered track {st.track_id} (its talker, moved)")
@@ -1059,8 +1063,7 @@ class SourceTracker:
                         # comes from a few peaks around its birth (`two_talkers`: 2 ms/s, which carried the
                         # beam 1 ms off its talker within 0.6 s of speech), the older one's from seconds of hits
                         old = a if young is b else b
-                        young.kalman._kf.x[:] = old.kalman._kf.x
-                        young.kalman._kf.P[:] = old.kalman._kf.P
+                        young.take_filter(old)
                         if old.drift_rate_s_per_s is not None:
                             young.drift_rate_s_per_s = old.drift_rate_s_per_s.copy()
                         young = old

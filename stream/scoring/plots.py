@@ -264,9 +264,7 @@ def plot_source_tracks(
             rel = 1e3 * (v[:, d] - v[:, r])
             noise = h["kind"] == "noise"
             colour = "0.6" if noise else colours[n_i % len(colours)]
-            heard = np.asarray(h.get("heard", np.ones(len(t), bool)), bool)[:len(t)]
-            if len(heard) < len(t):
-                heard = np.r_[heard, np.ones(len(t) - len(heard), bool)]
+            heard = np.asarray(h.get("heard", np.ones(len(t), bool)), bool)   # in step with time_s (History)
             # where the track had no hit for a while it is only the filter's prediction: faint and thin, so a
             # drifting prediction is not read as a source that moved
             ax.plot(t, np.where(heard, rel, np.nan), "--" if noise else "-", color=colour, lw=0.9,
