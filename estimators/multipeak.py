@@ -57,8 +57,8 @@ _jit = numba.njit(cache=True, nogil=True, error_model="numpy")
 
 # Parameter slots of the compiled call (one float64 array instead of many arguments).
 (_P_MAX_LAG, _P_RATE_HZ, _P_ALPHA, _P_MODE, _P_SPEECH, _P_N_PEAKS, _P_UPDATE, _P_SMOOTH, _P_NOISE_SCALE,
- _P_SMOOTH_FAST, _P_FAST_LO_DB, _P_FAST_HI_DB) = range(12)
-_N_PARAMS = 12
+ _P_SMOOTH_FAST, _P_FAST_LO_DB, _P_FAST_HI_DB, _P_PEAKS) = range(13)
+_N_PARAMS = 13
 
 # The short-time average moves from its slow to its fast time constant as a pair's frame cross power (sum of
 # |X_i X_j^*| over the bins) rises from FAST_SNR_DB[0] to FAST_SNR_DB[1] above the noise cross power's.
@@ -160,7 +160,8 @@ def _max_nonneg(v):
 
 
 @_jit
-def _pair_spectrum(xi, xj, oi, oj, phi, sm, g, scratch, a, b, mode, update, phi_scale, adapt, fast, phi_l1, mi, mj):
+def _pair_spectrum(xi, xj, oi, oj, phi, sm, g, scratch, a, b, mode, update, phi_scale, adapt, fast, phi_l1, mi, mj,
+                   weigh):
     """One pair's weighted cross spectrum into ``g`` (module doc): the short-time average ``sm`` of
     ``X_i X_j^*`` (moved by ``b``; ``b = 1``: this frame only) minus the noise cross power ``phi`` (for
     "phat": this frame's ``X_i X_j^*`` alone), optional per-bin weight, PHAT normalisation; then the noise
@@ -177,7 +178,9 @@ def _pair_spectrum(xi, xj, oi, oj, phi, sm, g, scratch, a, b, mode, update, phi_
     the bit), in loops without a reduction, which vectorise (with complex64 elements, ``abs`` as ``hypot`` and
     a running maximum in the loop they did not: the frame took 1.4-2 times as long). The two sums that only
     feed the SNR share in dB, ``sum |X_i| |X_j|`` and ``sum |phi|``, are summed in SIMD lanes, with ``|.|`` as a
-    float32 ``sqrt``: they may differ in the last bits (the 52 scenes' SI-SDR moved by < 1e-8 dB)."""
+    float32 ``sqrt``: they may differ in the last bits (the 52 scenes' SI-SDR moved by < 1e-8 dB).
+
+    ``weigh`` False: the averages only (``g`` is left unweighted: a frame whose peaks are not searched)."""
     n_bins = xi.shape[0]
     if adapt:
         sc = _dot(mi, mj)
@@ -204,7 +207,6 @@ def _pair_spectrum(xi, xj, oi, oj, phi, sm, g, scratch, a, b, mode, update, phi_
         gf[2 * k] = cr
         gf[2 * k + 1] = ci
         m2[k] = cr * cr + ci * ci
-    peak2 = _max_nonneg(m2)
     if update and a != 0.0:   # a = 0 on speech frames: the average stays as it is
         of, pf = oi.view(np.float32), oj.view(np.float32)
         for k in range(n_bins):
@@ -212,6 +214,9 @@ def _pair_spectrum(xi, xj, oi, oj, phi, sm, g, scratch, a, b, mode, update, phi_
             phf[2 * k] += a * ((ar * br + ai * bi) - phf[2 * k])
             phf[2 * k + 1] += a * ((ai * br - ar * bi) - phf[2 * k + 1])
         phi_l1[0] = _abs_sum(phf)
+    if not weigh:
+        return
+    peak2 = _max_nonneg(m2)
     eps = _EPS_REL * np.sqrt(peak2) + _TINY
     eps2 = eps * eps
     one = np.float32(1.0)
@@ -272,6 +277,7 @@ def _frame(spectra, valid, old, old_usable, noise, smooth, noise_l1, cross, corr
     b = np.float32(params[_P_SMOOTH])
     phi_scale = np.float32(params[_P_NOISE_SCALE])
     fast = (np.float32(params[_P_SMOOTH_FAST]), params[_P_FAST_LO_DB], params[_P_FAST_HI_DB])
+    peaks = params[_P_PEAKS] != 0.0   # False: the averages only, no weighting, correlation or peaks
     for i in range(m):
         usable[i] = _channel_ok(spec[i], valid[i])
     adapt = fast[0] > b and mode != 0   # the average's time constant follows each pair's SNR this frame
@@ -289,10 +295,12 @@ def _frame(spectra, valid, old, old_usable, noise, smooth, noise_l1, cross, corr
             if usable[i] and usable[j]:
                 _pair_spectrum(xi, spec[j], old[i], old[j], noise[p], smooth[p], g, corr[p], a, b, mode,
                                update and old_usable[i] and old_usable[j], phi_scale, adapt, fast, noise_l1[p:p + 1],
-                               mag[i], mag[j])
+                               mag[i], mag[j], peaks)
             else:
                 g[:] = 0.0
             p += 1
+    if not peaks:
+        return _OK
     np.fft.irfft(cross, corr.shape[1], -1, None, corr)
     p = 0
     for i in range(m - 1):
@@ -395,6 +403,7 @@ class NoiseAwareGcc:
         self._params[_P_MODE] = _WEIGHTINGS[weighting]
         self._params[_P_N_PEAKS] = self.n_peaks
         self._params[_P_UPDATE] = 1.0
+        self._params[_P_PEAKS] = 1.0
         if not (np.isfinite(smoothing_time_constant_s) and smoothing_time_constant_s >= 0):
             raise ValueError(f"{smoothing_time_constant_s=} must be finite and >= 0")
         self.smoothing_time_constant_s = float(smoothing_time_constant_s)
@@ -457,7 +466,7 @@ class NoiseAwareGcc:
         return self._usable.copy()
 
     def process(self, spectra: np.ndarray, *, speech_probability: float, valid: np.ndarray | None = None,
-                update_noise: bool = True, raw: bool = False) -> tuple[np.ndarray, np.ndarray]:
+                update_noise: bool = True, raw: bool = False, peaks: bool = True) -> tuple[np.ndarray, np.ndarray]:
         """N best peaks of every pair for one frame; updates the noise cross-power spectra.
 
         Parameters
@@ -474,6 +483,9 @@ class NoiseAwareGcc:
         raw : bool
             True: plain PHAT (no removal) for this frame, e.g. on non-speech frames, whose peaks show the
             sources that keep sounding when nobody speaks.
+        peaks : bool
+            False: update the averages only (no correlation, no peaks: the returned arrays are not filled), for
+            the frames between two measurements of a tracker that measures every few frames.
 
         Returns
         -------
@@ -495,6 +507,7 @@ class NoiseAwareGcc:
         self._params[_P_SPEECH] = p_update
         self._params[_P_UPDATE] = 1.0 if update_noise else 0.0
         self._params[_P_MODE] = 0 if raw else _WEIGHTINGS[self.weighting]
+        self._params[_P_PEAKS] = 1.0 if peaks else 0.0
         if not (type(spectra) is np.ndarray and spectra.dtype == np.complex64 and spectra.flags.f_contiguous
                 and spectra.flags.writeable):
             spectra = np.asarray(spectra)

@@ -514,13 +514,15 @@ class Aligner:
                 self._submit_recheck()
             samples = np.zeros((hop, n_dev), np.float32)
             covered = np.zeros(n_dev, np.bool_)   # at least half the hop was received
-            for d in range(n_dev):   # written in place: zeros where a device has no samples
+            bufs, buf_start, received, half = self._bufs, self._buf_start, self._received, hop // 2
+            for d in range(n_dev):   # written in place: zeros where a device has no samples (as _held_part)
                 start = k * hop + offsets[d]
-                part = self._held_part(d, start, start + hop)
-                if part is not None:
-                    at, x = part
-                    samples[at:at + len(x), d] = x
-                    covered[d] = min(start + hop, self._received[d]) - max(start, self._buf_start[d], 0) >= hop // 2
+                b0 = buf_start[d]
+                buf = bufs[d].data
+                lo, hi = max(start, b0), min(start + hop, b0 + len(buf))
+                if hi > lo:
+                    samples[lo - start:hi - start, d] = buf[lo - b0:hi - b0]
+                    covered[d] = min(start + hop, received[d]) - max(start, b0, 0) >= half
             valid = _block_valid(samples, self.aligned, self._is_reference, covered, np.empty(n_dev, np.bool_))
             corrected = None
             if self._any_corrected:

@@ -26,6 +26,9 @@ def _add_engine_options(p: argparse.ArgumentParser) -> None:
     g.add_argument("--tracker-lookahead-s", type=float,
                    help="--estimator tracks: steer each frame by the tracker's decision this many seconds later "
                         "(adds as much latency; default 0.128 for replay, 0 for live and network sources)")
+    g.add_argument("--track-interval-s", type=float,
+                   help="--estimator tracks: measure (GCC peaks, track update) every this many seconds at most, "
+                        "in whole hops (default 0.016: every other hop at 16 kHz with a 128-sample hop; 0: every hop)")
     g.add_argument("--vad", help="speech-presence detector: auto (default: Silero, else WebRTC, else energy), "
                    "silero, webrtc or energy")
     g.add_argument("--gcc-weighting", choices=["subtract", "subtract-snr", "phat"],

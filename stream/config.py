@@ -76,6 +76,11 @@ class EngineConfig:
     # steered track, its TOA then taken back to t along its rate); 0 = causal, live's and the network's default
     # (stream.live.LIVE_DEFAULTS)
     tracker_lookahead_s: float = 0.128
+    # the tracker measures (GCC peaks, track update) once every k hops, the largest k whose span is at most this
+    # (at least every hop): a 128-sample hop at 16 kHz keeps its latency and measures every 16 ms as the default
+    # 256-sample hop does; the GCC's averages take every hop, the hops between are steered by the last decision
+    # (0: measure every hop)
+    track_interval_s: float = 0.016
     # coarse alignment
     align_window_s: float = 8.0
     max_offset_s: float = 4.0
@@ -120,6 +125,12 @@ class EngineConfig:
                                   min_confidence=float(min_conf))
         cfg.validate()
         return cfg
+
+    @property
+    def track_stride(self) -> int:
+        """Hops per tracker measurement (``track_interval_s``; a resolved config)."""
+        hop_s = self.hop_samples / self.working_rate_hz
+        return max(1, int(math.floor(self.track_interval_s / hop_s + 1e-9)))
 
     def validate(self) -> None:
         """Raise ConfigError with the option, its value and the condition it breaks."""
@@ -166,6 +177,8 @@ class EngineConfig:
             raise ConfigError(f"speed={self.speed} must be > 0 (or absent for as fast as possible)")
         if not (math.isfinite(self.tracker_lookahead_s) and 0 <= self.tracker_lookahead_s <= 2.0):
             raise ConfigError(f"tracker_lookahead_s={self.tracker_lookahead_s} must be in 0..2 seconds")
+        if not (math.isfinite(self.track_interval_s) and 0 <= self.track_interval_s <= 0.1):
+            raise ConfigError(f"track_interval_s={self.track_interval_s} must be in 0..0.1 seconds")
         if self.smoother_lag_frames < 1:
             raise ConfigError(f"smoother_lag_frames={self.smoother_lag_frames} must be >= 1")
         self._validate_calibration()

@@ -48,6 +48,7 @@ def make_estimator(config: EngineConfig, n_devices: int, device_names: Sequence[
     :class:`estimators.SourceTracker` whose ``target`` policy names its device by name or index)."""
     frame_period_s = config.hop_samples / config.working_rate_hz
     if config.estimator == "tracks":
+        frame_period_s *= config.track_stride   # the tracker's frame is its measurement
         words = config.target.split()
         device = None
         if words[0] == "nearest":
@@ -298,6 +299,10 @@ class Pipeline:
         self.speech = None
         self._steering = steering
         estimated = self.n_devices >= 2 and steering is None   # a given TOA (scoring): no estimator, no GCC
+        # the tracker measures (GCC peaks, track update) every `track_stride` hops, its frame; the GCC's averages
+        # take every hop
+        self.track_stride = config.track_stride if estimated and config.estimator == "tracks" else 1
+        self._track_phase = 0
         if estimated and config.estimator == "tracks":
             self.gcc = estimators.NoiseAwareGcc(
                 self.n_devices, n_fft=config.frame_samples, sample_rate_hz=fs, hop_s=config.hop_samples / fs,
@@ -336,6 +341,7 @@ class Pipeline:
         self._delayed: collections.deque = collections.deque()
         self._no_rate = np.zeros(self.n_devices)
         self._decision: tuple = (-1, False, np.zeros(self.n_devices), self._no_rate, 0.0)
+        self._measured: tuple = (np.zeros(0), np.zeros(0), False, -1, False)   # the last measurement, held
         self.compile_s = self._compile_kernels()
 
     def _compile_kernels(self) -> float:
@@ -463,38 +469,29 @@ class Pipeline:
                 self.apply_geometry(geometry, next_first_sample=block.first_sample + cfg.hop_samples)
         self._follow_offsets(block)
         spectra = self.stft.process(block.samples)
-        valid, track_id, p_speech = block.valid, -1, float("nan")
+        valid, track_id, p_speech, measure = block.valid, -1, float("nan"), True
         if self.tracker is not None:
             p_speech = self.speech.process(block.samples, block.valid).probability
-            peak_tdoa, peak_value = self.gcc.process(spectra, speech_probability=p_speech, valid=block.valid,
-                                                     raw=p_speech < self.tracker.speech_threshold)
-            tdoa = TdoaFrame(block.seq, time_s, peak_tdoa[:, 0], peak_value[:, 0])
-            fine = self.tracker.update(peak_tdoa, peak_value, speech_probability=p_speech,
-                                       usable=self.gcc.usable, time_s=time_s,
-                                       noise_peaks=self.gcc.noise_peaks if self.gcc.noise_mature else None)
-            gated = self.tracker.gated
-            track_id = self.tracker.steered_id
-            coarse = block.offsets_samples / fs
-            for t in self.tracker.tracks:
-                if t.kind != "tentative":
-                    h = self.state.source_tracks.get(t.track_id)
-                    if h is None:
-                        cap = self.state.history_cap
-                        h = self.state.source_tracks[t.track_id] = {"kind": t.kind, "time_s": History(cap),
-                                                                    "toa_s": History(cap), "heard": History(cap)}
-                    h["kind"] = t.kind
-                    h["time_s"].append(time_s)
-                    h["toa_s"].append(coarse + t.toa_s)
-                    h["heard"].append(time_s - t.last_hit_s <= HEARD_S)
-            # no talker tracked, and the devices' average at the coarse alignment would point at a tracked
-            # noise source: the output is the reference device, not a beam at the noise (otherwise the
-            # average: no louder than one device, with less of the room's reverberation and sensor noise)
-            fallback = track_id < 0 and self.tracker.noise_at(fine)
+            measure = self._track_phase == 0
+            self._track_phase = (self._track_phase + 1) % self.track_stride
+            if measure:
+                fine, tdoa, gated, track_id, fallback = self._track(spectra, block, time_s, p_speech)
+            else:   # between measurements: the GCC's averages take the hop, the last decision holds (the
+                # look-ahead takes its TOA along its rate; a re-aligned device has moved the tracks with it)
+                self.gcc.process(spectra, speech_probability=p_speech, valid=block.valid,
+                                 raw=p_speech < self.tracker.speech_threshold, peaks=False)
+                tdoa_s, confidence, gated, measured_id, fallback = self._measured
+                tdoa = TdoaFrame(block.seq, time_s, tdoa_s, confidence)
+                steered = self.tracker.steered
+                fine = steered.toa_s if steered is not None else self.tracker.steered_toa_s
+                track_id = self.tracker.steered_id
+                fallback = fallback and track_id == measured_id
             if self.lookahead_frames:
                 self._fine_toa_s = fine
-                rate = self.tracker.steered.toa_rate_s_per_s if track_id >= 0 else self._no_rate
-                self._look_ahead(t0, spectra, block, time_s, tdoa, gated, p_speech,
-                                 (track_id, fallback, coarse + fine, rate, time_s))
+                if measure:
+                    rate = self.tracker.steered.toa_rate_s_per_s if track_id >= 0 else self._no_rate
+                    self._decision = (track_id, fallback, block.offsets_samples / fs + fine, rate, time_s)
+                self._look_ahead(t0, spectra, block, time_s, tdoa, gated, p_speech, measure)
                 return
             if fallback:
                 valid = self._reference_only_of(block.valid)
@@ -513,8 +510,39 @@ class Pipeline:
                 return
             spectra, block, time_s, tdoa, valid = self._delayed.popleft()
         self._steer(spectra, block, time_s, tdoa, valid, fine, gated, track_id, p_speech)
-        self._recentre(fine, block)
+        if measure:   # on each measurement's TOA once
+            self._recentre(fine, block)
         self.hop_times.add(1e3 * (time.perf_counter() - t0))
+
+    def _track(self, spectra, block: Block, time_s: float, p_speech: float) -> tuple:
+        """One tracker measurement: the noise-aware GCC peaks, the track bank's update, each source track's
+        history. Returns (the steered fine TOA, the TDOA frame, gated, the steered track id, fallback)."""
+        peak_tdoa, peak_value = self.gcc.process(spectra, speech_probability=p_speech, valid=block.valid,
+                                                 raw=p_speech < self.tracker.speech_threshold)
+        tdoa = TdoaFrame(block.seq, time_s, peak_tdoa[:, 0], peak_value[:, 0])
+        fine = self.tracker.update(peak_tdoa, peak_value, speech_probability=p_speech,
+                                   usable=self.gcc.usable, time_s=time_s,
+                                   noise_peaks=self.gcc.noise_peaks if self.gcc.noise_mature else None)
+        gated = self.tracker.gated
+        track_id = self.tracker.steered_id
+        coarse = block.offsets_samples / self.config.working_rate_hz
+        for t in self.tracker.tracks:
+            if t.kind != "tentative":
+                h = self.state.source_tracks.get(t.track_id)
+                if h is None:
+                    cap = self.state.history_cap
+                    h = self.state.source_tracks[t.track_id] = {"kind": t.kind, "time_s": History(cap),
+                                                                "toa_s": History(cap), "heard": History(cap)}
+                h["kind"] = t.kind
+                h["time_s"].append(time_s)
+                h["toa_s"].append(coarse + t.toa_s)
+                h["heard"].append(time_s - t.last_hit_s <= HEARD_S)
+        # no talker tracked, and the devices' average at the coarse alignment would point at a tracked
+        # noise source: the output is the reference device, not a beam at the noise (otherwise the
+        # average: no louder than one device, with less of the room's reverberation and sensor noise)
+        fallback = track_id < 0 and self.tracker.noise_at(fine)
+        self._measured = (tdoa.tdoa_s, tdoa.confidence, gated, track_id, fallback)
+        return fine, tdoa, gated, track_id, fallback
 
     def _reference_only_of(self, valid: np.ndarray) -> np.ndarray:
         out = self._reference_only
@@ -523,14 +551,15 @@ class Pipeline:
         return out
 
     def _look_ahead(self, t0: float, spectra, block: Block, time_s: float, tdoa: TdoaFrame, gated: bool,
-                    p_speech: float, decision: tuple) -> None:
+                    p_speech: float, measured: bool) -> None:
         """Tracker look-ahead: this frame waits ``lookahead`` frames, and the frame that many frames old is
-        steered by this frame's ``decision`` (track id, fallback, total TOA = coarse offset + fine, its rate, the
-        time): the steered track at its newest TOA taken back to the old frame's time along its TOA rate (the
-        Kalman state's velocity: a walking talker's TOA moves in those frames), or the reference device when
-        nothing is steered and the average would point at a noise source."""
-        self._decision = decision
-        self._recentre(self._fine_toa_s, block)
+        steered by the newest ``_decision`` (track id, fallback, total TOA = coarse offset + fine, its rate, the
+        time it was made: this frame's when ``measured``): the steered track at its newest TOA taken back to the
+        old frame's time along its TOA rate (the Kalman state's velocity: a walking talker's TOA moves in those
+        frames), or the reference device when nothing is steered and the average would point at a noise
+        source."""
+        if measured:
+            self._recentre(self._fine_toa_s, block)
         if self._held(t0, (spectra.copy(), block, time_s, tdoa, block.valid.copy(), gated, p_speech)):
             self._steer_ahead()
             self.hop_times.add(1e3 * (time.perf_counter() - t0))

@@ -398,6 +398,7 @@ def _finalise(report, out, cfg, pipeline, layout, fixture, names, collector, t_w
             "output_latency_s": pipeline.latency_samples / fs,
             "algorithmic_latency_s": (cfg.frame_samples) / fs,
             "tracker_lookahead_s": pipeline.lookahead_frames * cfg.hop_samples / fs,   # part of output_latency_s
+            "tracker_every_hops": pipeline.track_stride,   # the tracker measures every this many hops
             "audio_s": audio_s,
             "n_blocks": n_blocks,
             "n_gated": pipeline.counters.n_gated,
@@ -441,6 +442,7 @@ def _finalise(report, out, cfg, pipeline, layout, fixture, names, collector, t_w
             "recheck_process": ("failed: " + offsets.worker().failed) if offsets.worker().failed else "ok",
             "real_time_factor": wall_s / audio_s if audio_s else None,
             "block_ms_median": ht.percentile(50),
+            "block_ms_mean": ht.sum_ms / ht.n if ht.n else 0.0,   # the tracker measures on some hops only
             "block_ms_p95": ht.percentile(95),
             "block_ms_p99": ht.percentile(99),
             "block_ms_p999": ht.percentile(99.9),

@@ -288,3 +288,28 @@ def test_a_channel_with_a_non_finite_or_no_value_gives_its_pairs_nothing(bad):
     col[3] = complex(0.0, 1e-30)   # one tiny value: usable
     gcc.process(spectra, speech_probability=1.0)
     assert gcc.usable.all()
+
+
+@pytest.mark.parametrize("weighting", ["subtract", "subtract-snr", "phat"])
+def test_frames_without_peaks_move_the_averages_exactly_as_frames_with_them(weighting):
+    """``peaks=False`` (a tracker that measures every other hop): the frame still moves the short-time and the
+    noise averages, so the next measured frame's peaks are the same to the bit as when every frame is searched."""
+    x, active, _, _ = _two_sources(3, seconds=2.0)
+    m = x.shape[1]
+    stft = beamform.StreamingStft(m, frame_samples=N_FFT, hop_samples=HOP)
+    every, other = (NoiseAwareGcc(m, n_fft=N_FFT, sample_rate_hz=FS, hop_s=HOP / FS, max_tdoa_s=0.004,
+                                  weighting=weighting) for _ in range(2))
+    n_compared = 0
+    for k in range(len(active)):
+        spectra = stft.process(x[k * HOP:(k + 1) * HOP])
+        p = float(active[k])
+        t_every, v_every = every.process(spectra, speech_probability=p, raw=not active[k])
+        if k % 2:
+            other.process(spectra, speech_probability=p, raw=not active[k], peaks=False)
+            continue
+        t_other, v_other = other.process(spectra, speech_probability=p, raw=not active[k])
+        np.testing.assert_array_equal(t_other, t_every)
+        np.testing.assert_array_equal(v_other, v_every)
+        n_compared += 1
+    assert n_compared > 50 and every.noise_mature and other.noise_mature
+    np.testing.assert_array_equal(other.noise_peaks()[2], every.noise_peaks()[2])
