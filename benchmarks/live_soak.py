@@ -79,7 +79,8 @@ def _looping_player(bay: PatchBay, audio: np.ndarray, client: str, stop: threadi
             time.sleep(0.05)
 
 
-def run(name: str, rate: int, frame: int, hop: int, period: int, seconds: float, estimator: str | None = None) -> dict:
+def run(name: str, rate: int, frame: int, hop: int, period: int, seconds: float, estimator: str | None = None,
+        engine_args: list[str] = ()) -> dict:
     audio = fixture_audio(rate)
     with jack_dummy_server(sample_rate_hz=rate, period_samples=period, n_channels=N_DEV) as server:
         env = dict(os.environ, JACK_DEFAULT_SERVER=server.name)
@@ -105,6 +106,7 @@ def run(name: str, rate: int, frame: int, hop: int, period: int, seconds: float,
                 cmd += ["--input", f"system:{k + 1}"]
             if estimator:
                 cmd += ["--estimator", estimator]
+            cmd += list(engine_args)
             eng = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=seconds + 300)
             stop.set()
             player.join(5)
@@ -117,6 +119,7 @@ def run(name: str, rate: int, frame: int, hop: int, period: int, seconds: float,
         "config": name, "rate_hz": rate, "n_devices": N_DEV, "frame_samples": frame, "hop_samples": hop,
         "jack_period_samples": period, "seconds": seconds, "status": report.get("status"),
         "estimator": report.get("settings", {}).get("estimator"),
+        "engine_args": list(engine_args),
         "exit_code": eng.returncode,
         "audio_s": report.get("stream", {}).get("audio_s"),
         "n_overflows": sum(c["n_overflows"] for c in cards.get("inputs", [])),
@@ -141,11 +144,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--minutes", type=float, default=10.0, help="soak run (8 ch, 48 kHz; 0: skip it)")
     ap.add_argument("--cpu-minutes", type=float, default=2.0, help="CPU run (8 dev, 16 kHz, hop 128; 0: skip it)")
     ap.add_argument("--estimator", help="the engine's TOA estimator (default: live's, the tracker)")
+    ap.add_argument("--engine-arg", action="append", default=[], metavar="ARG",
+                    help="one more argument for `adhoc-array live` (repeat; e.g. --engine-arg=--track-interval-s "
+                         "--engine-arg=0)")
     args = ap.parse_args(argv)
     if args.minutes < 0 or args.cpu_minutes < 0 or not (args.minutes or args.cpu_minutes):
         ap.error("--minutes and --cpu-minutes must be >= 0, and one of them > 0")
-    results = ([run("cpu", 16000, 512, 128, 128, 60 * args.cpu_minutes, args.estimator)] if args.cpu_minutes else []) \
-        + ([run("soak", 48000, 4096, 1024, 1024, 60 * args.minutes, args.estimator)] if args.minutes else [])
+    results = ([run("cpu", 16000, 512, 128, 128, 60 * args.cpu_minutes, args.estimator, args.engine_arg)]
+               if args.cpu_minutes else []) \
+        + ([run("soak", 48000, 4096, 1024, 1024, 60 * args.minutes, args.estimator, args.engine_arg)]
+           if args.minutes else [])
     for r in results:
         print(f"{r['config']:>4}: {r['n_devices']} devices at {r['rate_hz']} Hz, {r['frame_samples']}/{r['hop_samples']}, "
               f"{r['estimator']}, "
