@@ -576,7 +576,7 @@ class Pipeline:
         spectra, block, time_s, tdoa, valid, gated, p_speech = self._delayed.popleft()
         track_id, fallback, total_toa_s, rate, decided_s = self._decision
         if track_id < 0:   # nothing steered: the devices' average at the coarse alignment
-            fine = np.zeros(self.n_devices)
+            fine = self._no_rate   # zeros, never written
         else:
             fine = (total_toa_s - rate * (decided_s - time_s)
                     - block.offsets_samples / self.config.working_rate_hz)
