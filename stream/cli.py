@@ -324,12 +324,17 @@ def summary(report: dict[str, Any], out: Path) -> str:
                      f"{1e3 * st['output_latency_s']:.1f} ms"
                      + (f" (the tracker's look-ahead {1e3 * st['tracker_lookahead_s']:.0f} ms included)"
                         if st.get("tracker_lookahead_s") else ""))
-        lines.append(f"  estimator {report['settings']['estimator']}: {st['n_gated']} of {st['n_blocks']} frames gated"
+        every = st.get("tracker_every_hops", 1)
+        lines.append(f"  estimator {report['settings']['estimator']}"
+                     + (f" (measuring every {every} hops, {1e3 * every * st['hop_samples'] / st['working_rate_hz']:.0f} ms)"
+                        if every > 1 else "")
+                     + f": {st['n_gated']} of {st['n_blocks']} frames gated"
                      f", {st['n_recentred']} re-centrings, coarse offsets (s) "
                      + " ".join(f"{o:+.3f}" for o in st["coarse_offsets_s"]))
     if tm:
         lines.append(f"  speed: {tm['wall_s']:.2f} s wall ({_fmt(tm.get('real_time_factor'), '.3f')} x real time), "
-                     f"per hop median {tm['block_ms_median']:.2f} ms of {tm['hop_ms']:.1f} ms")
+                     f"per hop median {tm['block_ms_median']:.2f} ms"
+                     + (f" (mean {tm['block_ms_mean']:.2f})" if "block_ms_mean" in tm else "") + f" of {tm['hop_ms']:.1f} ms")
     m = report.get("metrics", {})
     if "toa" in m:
         lines.append("  TOA RMSE (eq. 18, samples): " + ", ".join(

@@ -69,3 +69,11 @@ def test_measuring_every_other_hop_keeps_the_enhancement(runs):
     single = every.report["metrics"]["enhancement"]["best_single_device"]["si_sdr_db"]
     print(f"SI-SDR every hop {sdr[0]:.2f} dB, every other hop {sdr[1]:.2f} dB, best single device {single:.2f} dB")
     assert abs(sdr[1] - sdr[0]) < 0.3 and sdr[1] > single + 1.0
+
+
+def test_the_summary_says_how_often_the_tracker_measures(runs, tmp_path):
+    from stream.cli import summary
+    every, other, _ = runs
+    assert "measuring every 2 hops, 16 ms" in summary(other.report, tmp_path)
+    assert "measuring every" not in summary(every.report, tmp_path)
+    assert "(mean " in summary(other.report, tmp_path)
