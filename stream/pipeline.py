@@ -339,9 +339,9 @@ class Pipeline:
         self._lag = (self.lookahead_frames if self.tracker is not None
                      else int(self.estimator.latency_frames) if self.estimator is not None else 0)
         self._delayed: collections.deque = collections.deque()
-        self._no_rate = np.zeros(self.n_devices)
-        self._decision: tuple = (-1, False, np.zeros(self.n_devices), self._no_rate, 0.0)
-        self._measured: tuple = (np.zeros(0), np.zeros(0), False, -1, False)   # the last measurement, held
+        self._zeros = np.zeros(self.n_devices)   # no rate, no fine TOA (never written)
+        self._decision: tuple = (-1, False, np.zeros(self.n_devices), self._zeros, 0.0)
+        self._measured: tuple = (np.zeros(0), np.zeros(0), False, False)   # the last measurement, held
         self.compile_s = self._compile_kernels()
 
     def _compile_kernels(self) -> float:
@@ -474,22 +474,22 @@ class Pipeline:
             p_speech = self.speech.process(block.samples, block.valid).probability
             measure = self._track_phase == 0
             self._track_phase = (self._track_phase + 1) % self.track_stride
+            # every hop moves the GCC's averages; its peaks are searched on the tracker's measurements only
+            peaks = self.gcc.process(spectra, speech_probability=p_speech, valid=block.valid,
+                                     raw=p_speech < self.tracker.speech_threshold, peaks=measure)
             if measure:
-                fine, tdoa, gated, track_id, fallback = self._track(spectra, block, time_s, p_speech)
-            else:   # between measurements: the GCC's averages take the hop, the last decision holds (the
-                # look-ahead takes its TOA along its rate; a re-aligned device has moved the tracks with it)
-                self.gcc.process(spectra, speech_probability=p_speech, valid=block.valid,
-                                 raw=p_speech < self.tracker.speech_threshold, peaks=False)
-                tdoa_s, confidence, gated, measured_id, fallback = self._measured
+                fine, tdoa, gated, track_id, fallback = self._track(*peaks, block, time_s, p_speech)
+            else:   # between measurements the last decision holds (the look-ahead takes its TOA along its rate;
+                # a re-aligned device has moved the tracks with it; a reset leaves nothing steered)
+                tdoa_s, confidence, gated, fallback = self._measured
                 tdoa = TdoaFrame(block.seq, time_s, tdoa_s, confidence)
                 steered = self.tracker.steered
                 fine = steered.toa_s if steered is not None else self.tracker.steered_toa_s
                 track_id = self.tracker.steered_id
-                fallback = fallback and track_id == measured_id
             if self.lookahead_frames:
                 self._fine_toa_s = fine
                 if measure:
-                    rate = self.tracker.steered.toa_rate_s_per_s if track_id >= 0 else self._no_rate
+                    rate = self.tracker.steered.toa_rate_s_per_s if track_id >= 0 else self._zeros
                     self._decision = (track_id, fallback, block.offsets_samples / fs + fine, rate, time_s)
                 self._look_ahead(t0, spectra, block, time_s, tdoa, gated, p_speech, measure)
                 return
@@ -514,11 +514,10 @@ class Pipeline:
             self._recentre(fine, block)
         self.hop_times.add(1e3 * (time.perf_counter() - t0))
 
-    def _track(self, spectra, block: Block, time_s: float, p_speech: float) -> tuple:
-        """One tracker measurement: the noise-aware GCC peaks, the track bank's update, each source track's
+    def _track(self, peak_tdoa: np.ndarray, peak_value: np.ndarray, block: Block, time_s: float,
+               p_speech: float) -> tuple:
+        """One tracker measurement from the frame's GCC peaks: the track bank's update, each source track's
         history. Returns (the steered fine TOA, the TDOA frame, gated, the steered track id, fallback)."""
-        peak_tdoa, peak_value = self.gcc.process(spectra, speech_probability=p_speech, valid=block.valid,
-                                                 raw=p_speech < self.tracker.speech_threshold)
         tdoa = TdoaFrame(block.seq, time_s, peak_tdoa[:, 0], peak_value[:, 0])
         fine = self.tracker.update(peak_tdoa, peak_value, speech_probability=p_speech,
                                    usable=self.gcc.usable, time_s=time_s,
@@ -541,7 +540,7 @@ class Pipeline:
         # noise source: the output is the reference device, not a beam at the noise (otherwise the
         # average: no louder than one device, with less of the room's reverberation and sensor noise)
         fallback = track_id < 0 and self.tracker.noise_at(fine)
-        self._measured = (tdoa.tdoa_s, tdoa.confidence, gated, track_id, fallback)
+        self._measured = (tdoa.tdoa_s, tdoa.confidence, gated, fallback)
         return fine, tdoa, gated, track_id, fallback
 
     def _reference_only_of(self, valid: np.ndarray) -> np.ndarray:
@@ -576,7 +575,7 @@ class Pipeline:
         spectra, block, time_s, tdoa, valid, gated, p_speech = self._delayed.popleft()
         track_id, fallback, total_toa_s, rate, decided_s = self._decision
         if track_id < 0:   # nothing steered: the devices' average at the coarse alignment
-            fine = self._no_rate   # zeros, never written
+            fine = self._zeros
         else:
             fine = (total_toa_s - rate * (decided_s - time_s)
                     - block.offsets_samples / self.config.working_rate_hz)
