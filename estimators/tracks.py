@@ -15,6 +15,8 @@ N best GCC-PHAT peaks of every pair (:class:`estimators.multipeak.NoiseAwareGcc`
   ``noise_near_s`` of a talker track's prediction is left out of that track's update (``n_pairs_near_noise`` in
   the report): there the noise's peak merges with the talker's into one lobe or sits beside it, and the nearest
   peak may be the noise's, a bias of a sample or two that holds as long as the sources do.
+  A device of a track that no matched pair has measured for ``unpinned_s`` of speech frames goes on at its
+  clock drift rate (the track's average over the hits that measured it), not at a rate nothing measures.
 - **Birth** (speech frames only): from the peaks no track took, the highest of every pair, a robust
   least-squares TOA fit (eq. 12; pairs off by more than ``birth_max_residual_s`` dropped, then refitted)
   whose kept pairs are self-consistent, cover at least ``min_pair_fraction`` of the usable pairs and
@@ -30,8 +32,11 @@ N best GCC-PHAT peaks of every pair (:class:`estimators.multipeak.NoiseAwareGcc`
   speech frames it takes its source's peaks after the talkers, so that no talker track is born on them though
   the detector calls every frame speech while it sounds (a dish clatter fires Silero); there its gate stays
   capped however young it is (an open gate took the talker's peaks at the first word). It turns talker only
-  once the pauses are quiet of it. The noise spectra correct it when they agree on all devices but one (a
-  single pause's peaks may put one device on a reflection). A talker track within ``NOISE_SAME_S`` of it on
+  once the pauses are quiet of it, or when over its first speech hits its peaks are ``louder_ratio`` times higher
+  in speech frames than in the pauses and it is hit in most speech frames: a talker heard before the first word
+  (the room or the breath of the recording); a noise source is masked by the talker instead
+  (``n_talkers_from_pauses`` in the report). The noise spectra correct it when they agree on all devices but one
+  (a single pause's peaks may put one device on a reflection). A talker track within ``NOISE_SAME_S`` of it on
   every device, or on every device but one (at least four agreeing, up to a common shift: born on the noise's
   peaks where its gate missed them, one device on another peak), is that noise source, and goes.
 - **Labels**: a track is ``"speech"`` when it was born and confirmed on speech frames; it becomes ``"noise"``
@@ -97,6 +102,8 @@ NOISE_SAME_S = 2.5e-4            # a talker track this close to a noise source f
 TAKEOVER_S = 1e-3                 # a new talker track this close to the steered one (every device) is its talker
 QUIET_S = 0.048                   # the steered talker unheard for this long (speech frames): another may take the turn
 FAST_ACTIVITY_S = 0.1             # ... the one most active over about this long (speech frames)
+LOUDER_MIN_HITS = 15              # hits in speech frames and in the pauses before ``louder_ratio`` is applied,
+LOUDER_MAX_HITS = 50              # ... and in speech frames after which it is not (a talker's first second)
 
 
 def within_but_one(err_s: np.ndarray, within_s: float) -> np.ndarray:
@@ -149,6 +156,35 @@ def _anchor_vote(votes, peak_tdoa, peak_value, pred, pair_ok, pair_idx, decay, i
         if v > ratio * stay and v > min_votes and v > dev_votes:
             dev, dev_bin, dev_votes = i, best, v
     return dev, dev_bin
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _count_misses(miss, took, pair_idx):
+    """``miss`` (M,) += 1, then 0 for every device in a pair ``took`` (n_pairs,) bool: per device, the speech frames
+    since a matched pair of a track last measured it."""
+    for d in range(miss.shape[0]):
+        miss[d] += 1
+    for q in range(took.shape[0]):
+        if took[q]:
+            miss[pair_idx[q, 0]] = 0
+            miss[pair_idx[q, 1]] = 0
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _drift_step(drift, rate, beta, miss):
+    """The drift average ``drift`` (M-1,) of devices 1..M-1 steps towards ``rate`` by ``beta`` where this frame
+    measured the device (``miss[d] == 0``)."""
+    for d in range(drift.shape[0]):
+        if miss[d + 1] == 0:
+            drift[d] += beta * (rate[d] - drift[d])
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _hold_unpinned(rate, miss, drift, min_miss, limit):
+    """A device unmeasured for ``min_miss`` speech frames goes on at its drift average, within +-``limit``."""
+    for d in range(rate.shape[0]):
+        if miss[d + 1] >= min_miss:
+            rate[d] = min(max(drift[d], -limit), limit)
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
@@ -255,6 +291,7 @@ class Track:
     fast_activity: float = 0.0       # as ``activity``, over FAST_ACTIVITY_S
     anchor_votes: np.ndarray | None = field(default=None, repr=False)   # (M, bins): see SourceTracker._reanchor
     drift_rate_s_per_s: np.ndarray | None = None   # EMA over its hits (3 s) of its TOA rates: clock drift
+    device_miss: np.ndarray | None = None   # (M,) int64: per device, speech frames since a matched pair measured it
     quiet_activity: float = 0.0      # EMA over non-speech frames of "its peaks are there" (0 or 1)
     speech_rate: float = 0.0         # EMA over speech frames of "it had a hit" (0 or 1)
     active_s: float = 0.0            # seconds of frames with a hit
@@ -266,6 +303,10 @@ class Track:
     quiet_origin: bool = False       # a noise source found on non-speech frames (updated on them)
     quiet_seen: int = 0              # its non-speech frames since birth, and its hits in them
     quiet_hits: int = 0
+    quiet_value: float = 0.0         # mean matched peak height (as ``hit_value``) of its hits on non-speech frames
+    n_quiet_values: int = 0          # (a running mean over the first 50 hits, then an average over the last ~50)
+    speech_value: float = 0.0        # ... and of its hits on speech frames
+    n_speech_values: int = 0
     died_s: float | None = None
     death_reason: str = ""
 
@@ -331,6 +372,14 @@ class SourceTracker:
     noise_near_s : float or None
         A pair where a noise source found in the pauses is predicted within this of a talker track's prediction
         is left out of that track's update (module doc; 3 samples at 16 kHz); None or 0: never.
+    unpinned_s : float or None
+        A device of a track that no matched pair has measured for this long (speech frames) goes on at its clock
+        drift rate (that track's average over the hits that measured it, within ``MAX_DRIFT_RATE_S_PER_S``),
+        not at a motion nothing measures; None or 0: never (the tracker before 2026-11-29).
+    louder_ratio : float or None
+        A noise source found in the pauses turns talker when, over its first ``LOUDER_MAX_HITS`` hits in speech
+        frames, its peaks are this many times higher there than in the pauses (and it is hit in most speech
+        frames): a talker heard before the first word. None or 0: never (the tracker before 2026-11-29).
     """
 
     latency_frames = 0   # causal: the steered TOA is the current frame's
@@ -344,7 +393,8 @@ class SourceTracker:
                  activity_time_constant_s: float = 0.4, switch_ratio: float = 1.5, same_source_s: float = 2e-4,
                  noise_every_s: float = 0.25, noise_quiet_activity: float = 0.3,
                  max_rate_s_per_s: float = 3e-3, quiet_confirm_s: float | None = 0.5,
-                 quiet_confirm_share: float = 0.7, noise_near_s: float | None = 1.875e-4) -> None:
+                 quiet_confirm_share: float = 0.7, noise_near_s: float | None = 1.875e-4,
+                 unpinned_s: float | None = 0.25, louder_ratio: float | None = 1.3) -> None:
         if int(n_devices) != n_devices or n_devices < 2:
             raise ValueError(f"{n_devices=} must be an integer >= 2")
         if target not in ("active-talker", "nearest"):
@@ -383,6 +433,9 @@ class SourceTracker:
         self.quiet_beta = 1.0 - math.exp(-self.frame_period_s / 1.0)   # 1 s average over non-speech frames
         self.quiet_skip_frames = max(1, int(round(0.3 / self.frame_period_s)))  # 0.3 s after speech: its tail
         self._drift_beta = 1.0 - math.exp(-self.frame_period_s / 3.0)   # 3 s average over a track's hits
+        self._unpinned_frames = (None if not unpinned_s
+                                 else max(1, int(round(float(unpinned_s) / self.frame_period_s))))
+        self.louder_ratio = None if not louder_ratio else float(louder_ratio)
         self.noise_quiet_activity = float(noise_quiet_activity)
         self.max_rate_s_per_s = float(max_rate_s_per_s)
         self.quiet_confirm_frames = (None if quiet_confirm_s is None
@@ -404,6 +457,7 @@ class SourceTracker:
         self._H = pair_matrix(self.n_devices)
         self._H0 = self._H[:, 1:]
         self._rows = np.arange(self.n_pairs)
+        self._no_pairs = np.zeros(self.n_pairs, bool)
         self._pinv_cache: dict[bytes, np.ndarray] = {}
         # per device r: the pairs (r, j) / (j, r) with every other device j, and the sign that turns the
         # pair's TDOA into toa_j - toa_r
@@ -454,6 +508,7 @@ class SourceTracker:
             self.n_reanchored = 0
             self.n_taken_over = 0
             self.n_pairs_near_noise = 0
+            self.n_talkers_from_pauses = 0
             self._next_id = 0
             self._last_time_s = 0.0
         else:
@@ -506,7 +561,7 @@ class SourceTracker:
                 "n_frames": self.n_frames, "n_speech_frames": self.n_speech_frames, "n_births": self.n_births,
                 "speech_s": round(self.n_speech_frames * self.frame_period_s, 3),
                 "n_reanchored": self.n_reanchored, "n_taken_over": self.n_taken_over,
-                "n_pairs_near_noise": self.n_pairs_near_noise,
+                "n_pairs_near_noise": self.n_pairs_near_noise, "n_talkers_from_pauses": self.n_talkers_from_pauses,
                 "tracks": [t.summary() for t in sorted(self.ended + self.tracks, key=lambda t: t.track_id)
                            if t.kind != "tentative" or t.n_hits >= self.confirm_hits],
                 "switches": self.switches}
@@ -616,11 +671,16 @@ class SourceTracker:
                     hit = True
                     used[self._rows[took], k[took]] = True
                     value = float(conf[took].sum()) / n_ok   # peak height times the share of pairs
-                    self._record_hit(t, time_s, value)
+                    _count_misses(t.device_miss, took, self._pairs)
+                    t.n_speech_values += 1
+                    t.speech_value += (value - t.speech_value) / min(t.n_speech_values, 50)
+                    self._record_hit(t, time_s, value, measured=True)
                 elif t is self.steered:
                     self.gated = True
             else:
                 t.kalman.predict()
+            if not hit:
+                _count_misses(t.device_miss, self._no_pairs, self._pairs)
             self._hold_still(t, quiet=False)
             if t.kind == "speech":
                 t.activity += self.activity_beta * ((value if hit else 0.0) - t.activity)
@@ -758,6 +818,11 @@ class SourceTracker:
         rate = x[m:]
         if quiet and t.drift_rate_s_per_s is not None:
             rate[:] = t.drift_rate_s_per_s
+        elif not quiet and self._unpinned_frames is not None and t.drift_rate_s_per_s is not None:
+            # a device no matched pair has measured for ``unpinned_s``: its rate is what its clock drift gives, not a
+            # motion nothing measures (seed 11's `s41`: one device of a talker track unmatched for 7 s drifted at
+            # -0.36 ms/s, 5-8 ms off its talker)
+            _hold_unpinned(rate, t.device_miss, t.drift_rate_s_per_s, self._unpinned_frames, MAX_DRIFT_RATE_S_PER_S)
         np.minimum(rate, limit, out=rate)
         np.maximum(rate, -limit, out=rate)
 
@@ -788,14 +853,32 @@ class SourceTracker:
             # a source found sounding in the pauses turns talker only once the pauses are quiet of it
             t.kind = "speech"
             t.quiet_origin = False
+        elif t.kind == "noise" and t.quiet_origin and self.louder_ratio is not None and t.speech_rate > 0.5 and \
+                LOUDER_MIN_HITS <= t.n_speech_values <= LOUDER_MAX_HITS and t.n_quiet_values >= LOUDER_MIN_HITS \
+                and t.speech_value > self.louder_ratio * t.quiet_value:
+            # a source of the pauses that is louder when somebody speaks is a talker heard before the first word
+            # (the room or the breath of the recording): a noise source is masked by the talker instead. Over the
+            # scenes of seeds 7-10 a noise source's peaks were 0.5-1.0 times as high in speech frames as in the
+            # pauses, such a talker's 1.6-2.2 times (seed 9's `s45`, seed 10's `s47`). Decided over the source's
+            # first speech hits only: white noise at 0 dB (seed 11's `s02`) reached 1.37 after 2.5 s of speech
+            t.kind = "speech"
+            t.quiet_origin = False
+            t.quiet_activity = 0.0
+            self.n_talkers_from_pauses += 1
 
-    def _record_hit(self, t: Track, time_s: float, value: float) -> None:
+    def _record_hit(self, t: Track, time_s: float, value: float, *, measured: bool = False) -> None:
         rate = t.kalman._kf.x[self.n_devices - 1:]
         if t.drift_rate_s_per_s is None:
             t.drift_rate_s_per_s = rate.copy()
         else:
-            # a plain average over its first hits, then the 3 s exponential one (no pull towards the first rate)
-            t.drift_rate_s_per_s += max(self._drift_beta, 1.0 / (t.n_hits + 1)) * (rate - t.drift_rate_s_per_s)
+            # a plain average over its first hits, then the 3 s exponential one (no pull towards the first rate);
+            # with ``unpinned_s``, a device no pair of this hit (``measured``: ``t.device_miss`` counted) measured
+            # keeps its average
+            beta = max(self._drift_beta, 1.0 / (t.n_hits + 1))
+            if measured and self._unpinned_frames is not None:
+                _drift_step(t.drift_rate_s_per_s, rate, beta, t.device_miss)
+            else:
+                t.drift_rate_s_per_s += beta * (rate - t.drift_rate_s_per_s)
         t.n_hits += 1
         t.last_hit_s = time_s
         t.active_s += self.frame_period_s
@@ -934,7 +1017,8 @@ class SourceTracker:
             victim = min(victims, key=lambda t: (t.kind != "tentative", t.last_hit_s))
             self._end(victim, time_s, "bank full")
         kalman = KalmanToa(self.n_devices, initial_toa_std_s=0.05, **self._kalman_kwargs)
-        t = Track(self._next_id, kalman, kind, born_s=time_s, last_hit_s=time_s)
+        t = Track(self._next_id, kalman, kind, born_s=time_s, last_hit_s=time_s,
+                  device_miss=np.zeros(self.n_devices, np.int64))
         self._next_id += 1
         self.n_births += 1
         self.tracks.append(t)
@@ -973,6 +1057,8 @@ class SourceTracker:
             if hit:
                 used[self._rows[took], k[took]] = True
                 t.last_hit_s = time_s
+                t.n_quiet_values += 1
+                t.quiet_value += (float(conf[took].sum()) / n_ok - t.quiet_value) / min(t.n_quiet_values, 50)
             if not t.quiet_born:
                 continue
             t.quiet_seen += 1

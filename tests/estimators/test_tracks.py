@@ -574,3 +574,74 @@ def test_a_young_steered_duplicate_keeps_the_beam_with_the_older_tracks_filter()
     assert tr.steered is young and young in tr.tracks
     np.testing.assert_allclose(young.toa_rate_s_per_s, old.toa_rate_s_per_s)
     np.testing.assert_allclose(young.toa_s, old.toa_s)
+
+
+@pytest.mark.parametrize("unpinned_s", [0.25, None])
+def test_a_device_no_pair_measures_goes_on_at_clock_drift_not_at_the_last_motion(unpinned_s):
+    """A talker walks for 2 s (device 3's TOA changes by 2 ms/s) and stops; from then on device 3's pairs carry no
+    peak of the talker (a far device in a reverberant room hears only reflections) while the other four devices
+    keep hearing it. Device 3 of the track goes on at clock drift from ``unpinned_s`` on: after 2 s it is within
+    1.2 ms of the talker (0.25 s at 2 ms/s, then 1.75 s at 0.25 ms/s: 0.94 ms); without the rule the walking
+    rate, which nothing measures any more, carried it 4 ms off (seed 11's `s41`: a device of a talker track
+    drifted 8 ms away at -0.36 ms/s)."""
+    from estimators.tracks import MAX_DRIFT_RATE_S_PER_S
+    rng = np.random.default_rng(21)
+    tr = _tracker(unpinned_s=unpinned_s)
+    on_3 = (pair_matrix(M)[:, 3] != 0)
+    toa, t = TALKER_A.copy(), 0.0
+    for _ in range(int(2.0 / DT)):
+        toa[3] += 2e-3 * DT
+        tdoa, value = _peaks([(toa, 0.5)], rng)
+        tr.update(tdoa, value, speech_probability=1.0, usable=USABLE, time_s=t)
+        t += DT
+    track = tr.steered
+    assert abs(track.toa_s[3] - toa[3]) < 2.5e-4
+    for _ in range(int(2.0 / DT)):
+        tdoa, value = _peaks([(toa, 0.5)], rng)
+        tdoa[on_3, 0] = rng.uniform(-0.01, 0.01, on_3.sum())   # the talker's peak gone from device 3's pairs
+        value[on_3, 0] = 0.1
+        tr.update(tdoa, value, speech_probability=1.0, usable=USABLE, time_s=t)
+        t += DT
+    assert tr.steered is track
+    err = abs(track.toa_s[3] - toa[3])
+    others = np.abs(track.toa_s - toa)[[1, 2, 4]]
+    assert np.all(others < 2.5e-4)
+    if unpinned_s is None:
+        assert err > 3e-3
+        return
+    assert err < 1.2e-3, err
+    assert abs(track.toa_rate_s_per_s[3]) <= MAX_DRIFT_RATE_S_PER_S + 1e-12
+
+
+@pytest.mark.parametrize("louder_ratio", [1.3, None])
+def test_a_talker_heard_in_the_pauses_before_the_first_word_is_steered_when_they_speak(louder_ratio):
+    """A noise source sounds alone for 1 s; then talker B's recording starts with 1 s of its own room sound before
+    the first word (non-speech frames: a noise track is confirmed there), then B speaks for 3 s, the noise
+    masked (its peaks lower). B's track, twice as loud when B speaks as in the pause, turns talker and the beam is
+    on B within half a second of the first word, never on the noise; without the rule B stayed a noise source and
+    nothing was steered (seed 9's `s45` and seed 10's `s47`: a whole turn of 3.8 and 4.5 s lost)."""
+    rng = np.random.default_rng(22)
+    tr = _tracker(louder_ratio=louder_ratio)
+    steered, t = [], 0.0
+    for k in range(int(5.0 / DT)):
+        t = k * DT
+        if t < 1.0:
+            sources, p = [(NOISE, 0.6)], 0.0
+        elif t < 2.0:
+            sources, p = [(NOISE, 0.6), (TALKER_B, 0.25)], 0.0
+        else:
+            sources, p = [(TALKER_B, 0.5), (NOISE, 0.3)], 1.0
+        tdoa, value = _peaks(sources, rng)
+        steered.append(tr.update(tdoa, value, speech_probability=p, usable=USABLE, time_s=t).copy())
+    steered = np.array(steered)
+    at_b = np.all(np.abs(steered - TALKER_B) < 2.5e-4, axis=1)
+    at_noise = np.all(np.abs(steered - NOISE) < 2.5e-4, axis=1)
+    assert not at_noise.any()
+    kinds = {x["id"]: x["kind"] for x in tr.report()["tracks"]}
+    assert list(kinds.values()).count("noise") >= 1
+    if louder_ratio is None:
+        assert not at_b[int(2.0 / DT):int(3.0 / DT)].any()
+        assert tr.report()["n_talkers_from_pauses"] == 0
+        return
+    assert at_b[int(2.5 / DT):].all()
+    assert tr.report()["n_talkers_from_pauses"] == 1
