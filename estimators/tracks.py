@@ -159,31 +159,34 @@ def _anchor_vote(votes, peak_tdoa, peak_value, pred, pair_ok, pair_idx, decay, i
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _count_misses(miss, took, pair_idx):
-    """``miss`` (M,) += 1, then 0 for every device in a pair ``took`` (n_pairs,) bool: per device, the speech frames
-    since a matched pair of a track last measured it."""
-    for d in range(miss.shape[0]):
-        miss[d] += 1
+def _mark_measured(last, took, pair_idx, frame):
+    """``last[d] = frame`` for every device ``d`` in a pair ``took`` (n_pairs,) bool; returns the oldest of
+    ``last[1:]`` (the devices whose TOA rates the track holds)."""
     for q in range(took.shape[0]):
         if took[q]:
-            miss[pair_idx[q, 0]] = 0
-            miss[pair_idx[q, 1]] = 0
+            last[pair_idx[q, 0]] = frame
+            last[pair_idx[q, 1]] = frame
+    oldest = frame
+    for d in range(1, last.shape[0]):
+        oldest = min(oldest, last[d])
+    return oldest
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _drift_step(drift, rate, beta, miss):
+def _drift_step(drift, rate, beta, last, frame):
     """The drift average ``drift`` (M-1,) of devices 1..M-1 steps towards ``rate`` by ``beta`` where this frame
-    measured the device (``miss[d] == 0``)."""
+    measured the device (``last[d] == frame``)."""
     for d in range(drift.shape[0]):
-        if miss[d + 1] == 0:
+        if last[d + 1] == frame:
             drift[d] += beta * (rate[d] - drift[d])
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _hold_unpinned(rate, miss, drift, min_miss, limit):
-    """A device unmeasured for ``min_miss`` speech frames goes on at its drift average, within +-``limit``."""
+def _hold_unpinned(rate, last, drift, before, limit):
+    """A device last measured at speech frame ``before`` or earlier goes on at its drift average, within
+    +-``limit``."""
     for d in range(rate.shape[0]):
-        if miss[d + 1] >= min_miss:
+        if last[d + 1] <= before:
             rate[d] = min(max(drift[d], -limit), limit)
 
 
@@ -291,7 +294,9 @@ class Track:
     fast_activity: float = 0.0       # as ``activity``, over FAST_ACTIVITY_S
     anchor_votes: np.ndarray | None = field(default=None, repr=False)   # (M, bins): see SourceTracker._reanchor
     drift_rate_s_per_s: np.ndarray | None = None   # EMA over its hits (3 s) of its TOA rates: clock drift
-    device_miss: np.ndarray | None = None   # (M,) int64: per device, speech frames since a matched pair measured it
+    last_measured: np.ndarray | None = None   # (M,) int64: per device, the speech frame (count) a matched pair
+    #                                           measured it last (its birth's at first)
+    oldest_measured: int = 0         # the oldest of those over devices 1..M-1
     quiet_activity: float = 0.0      # EMA over non-speech frames of "its peaks are there" (0 or 1)
     speech_rate: float = 0.0         # EMA over speech frames of "it had a hit" (0 or 1)
     active_s: float = 0.0            # seconds of frames with a hit
@@ -457,7 +462,6 @@ class SourceTracker:
         self._H = pair_matrix(self.n_devices)
         self._H0 = self._H[:, 1:]
         self._rows = np.arange(self.n_pairs)
-        self._no_pairs = np.zeros(self.n_pairs, bool)
         self._pinv_cache: dict[bytes, np.ndarray] = {}
         # per device r: the pairs (r, j) / (j, r) with every other device j, and the sign that turns the
         # pair's TDOA into toa_j - toa_r
@@ -671,7 +675,7 @@ class SourceTracker:
                     hit = True
                     used[self._rows[took], k[took]] = True
                     value = float(conf[took].sum()) / n_ok   # peak height times the share of pairs
-                    _count_misses(t.device_miss, took, self._pairs)
+                    t.oldest_measured = _mark_measured(t.last_measured, took, self._pairs, self.n_speech_frames)
                     t.n_speech_values += 1
                     t.speech_value += (value - t.speech_value) / min(t.n_speech_values, 50)
                     self._record_hit(t, time_s, value, measured=True)
@@ -679,8 +683,6 @@ class SourceTracker:
                     self.gated = True
             else:
                 t.kalman.predict()
-            if not hit:
-                _count_misses(t.device_miss, self._no_pairs, self._pairs)
             self._hold_still(t, quiet=False)
             if t.kind == "speech":
                 t.activity += self.activity_beta * ((value if hit else 0.0) - t.activity)
@@ -818,11 +820,13 @@ class SourceTracker:
         rate = x[m:]
         if quiet and t.drift_rate_s_per_s is not None:
             rate[:] = t.drift_rate_s_per_s
-        elif not quiet and self._unpinned_frames is not None and t.drift_rate_s_per_s is not None:
+        elif not quiet and self._unpinned_frames is not None and t.drift_rate_s_per_s is not None and \
+                self.n_speech_frames - t.oldest_measured >= self._unpinned_frames:
             # a device no matched pair has measured for ``unpinned_s``: its rate is what its clock drift gives, not a
             # motion nothing measures (seed 11's `s41`: one device of a talker track unmatched for 7 s drifted at
             # -0.36 ms/s, 5-8 ms off its talker)
-            _hold_unpinned(rate, t.device_miss, t.drift_rate_s_per_s, self._unpinned_frames, MAX_DRIFT_RATE_S_PER_S)
+            _hold_unpinned(rate, t.last_measured, t.drift_rate_s_per_s, self.n_speech_frames - self._unpinned_frames,
+                           MAX_DRIFT_RATE_S_PER_S)
         np.minimum(rate, limit, out=rate)
         np.maximum(rate, -limit, out=rate)
 
@@ -872,11 +876,11 @@ class SourceTracker:
             t.drift_rate_s_per_s = rate.copy()
         else:
             # a plain average over its first hits, then the 3 s exponential one (no pull towards the first rate);
-            # with ``unpinned_s``, a device no pair of this hit (``measured``: ``t.device_miss`` counted) measured
+            # with ``unpinned_s``, a device no pair of this hit (``measured``: ``t.last_measured`` marked) measured
             # keeps its average
             beta = max(self._drift_beta, 1.0 / (t.n_hits + 1))
             if measured and self._unpinned_frames is not None:
-                _drift_step(t.drift_rate_s_per_s, rate, beta, t.device_miss)
+                _drift_step(t.drift_rate_s_per_s, rate, beta, t.last_measured, self.n_speech_frames)
             else:
                 t.drift_rate_s_per_s += beta * (rate - t.drift_rate_s_per_s)
         t.n_hits += 1
@@ -1018,7 +1022,8 @@ class SourceTracker:
             self._end(victim, time_s, "bank full")
         kalman = KalmanToa(self.n_devices, initial_toa_std_s=0.05, **self._kalman_kwargs)
         t = Track(self._next_id, kalman, kind, born_s=time_s, last_hit_s=time_s,
-                  device_miss=np.zeros(self.n_devices, np.int64))
+                  last_measured=np.full(self.n_devices, self.n_speech_frames, np.int64),
+                  oldest_measured=self.n_speech_frames)
         self._next_id += 1
         self.n_births += 1
         self.tracks.append(t)
