@@ -681,7 +681,8 @@ class SourceTracker:
                     hit = True
                     used[self._rows[took], k[took]] = True
                     value = float(conf[took].sum()) / n_ok   # peak height times the share of pairs
-                    t.oldest_measured = _mark_measured(t.last_measured, took, self._pairs, self.n_speech_frames)
+                    if self._unpinned_frames is not None:
+                        t.oldest_measured = _mark_measured(t.last_measured, took, self._pairs, self.n_speech_frames)
                     t.n_speech_values += 1
                     t.speech_value += (value - t.speech_value) / min(t.n_speech_values, 50)
                     self._record_hit(t, time_s, value, measured=True)
