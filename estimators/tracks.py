@@ -347,7 +347,10 @@ class Track:
                 "died_s": None if self.died_s is None else round(self.died_s, 3), "death_reason": self.death_reason,
                 "n_hits": self.n_hits, "active_s": round(self.active_s, 3), "steered_s": round(self.steered_s, 3),
                 "mean_toa_s": [float(v) for v in mean], "std_toa_s": [float(v) for v in std],
-                "last_toa_s": [float(v) for v in self.toa_s]}
+                "last_toa_s": [float(v) for v in self.toa_s],
+                # its matched peak heights in speech frames and in the pauses (``louder_ratio``; None without hits)
+                "speech_peak": round(self.speech_value, 4) if self.n_speech_values else None,
+                "pause_peak": round(self.quiet_value, 4) if self.n_quiet_values else None}
 
 
 class SourceTracker:
