@@ -44,6 +44,25 @@ def _noise_alone(tr, rng, seconds=1.0):
     return t
 
 
+def _talk(tr, rng, toa_at, seconds, t=0.0):
+    """``seconds`` of speech frames of one talker at ``toa_at(t)`` (peak height 0.5) into ``tr`` from ``t``;
+    returns the time of the next frame."""
+    for _ in range(int(seconds / DT)):
+        tdoa, value = _peaks([(toa_at(t), 0.5)], rng)
+        tr.update(tdoa, value, speech_probability=1.0, usable=USABLE, time_s=t)
+        t += DT
+    return t
+
+
+def _pause(tr, rng, seconds, t):
+    """``seconds`` of non-speech frames with clutter only into ``tr`` from ``t``; returns the next frame's time."""
+    for _ in range(int(seconds / DT)):
+        tdoa, value = _peaks([], rng)
+        tr.update(tdoa, value, speech_probability=0.0, usable=USABLE, time_s=t)
+        t += DT
+    return t
+
+
 def test_turn_taking_moves_the_beam_within_half_a_second_and_never_to_the_noise():
     rng = np.random.default_rng(0)
     tr = _tracker()
@@ -221,10 +240,7 @@ def test_in_a_pause_a_track_moves_no_faster_than_clock_drift():
         tr.update(tdoa, value, speech_probability=1.0, usable=USABLE, time_s=t)
         t += DT
     assert np.max(np.abs(tr.steered_toa_s - toa)) < 2.5e-4
-    for _ in range(int(3.0 / DT)):
-        tdoa, value = _peaks([], rng)
-        tr.update(tdoa, value, speech_probability=0.0, usable=USABLE, time_s=t)
-        t += DT
+    _pause(tr, rng, 3.0, t)
     rate = tr.steered.kalman._kf.x[M - 1:]
     assert np.all(np.abs(rate) <= MAX_DRIFT_RATE_S_PER_S + 1e-12)
     assert np.max(np.abs(tr.steered_toa_s - toa)) < 0.3 * 2e-3 + 2.7 * MAX_DRIFT_RATE_S_PER_S + 2e-4
@@ -387,10 +403,7 @@ def test_clock_drift_is_followed_through_a_long_pause():
         tdoa, value = _peaks([(toa, 0.5)], rng, jitter_samples=0.5)
         tr.update(tdoa, value, speech_probability=1.0, usable=USABLE, time_s=t)
         t += DT
-    for _ in range(int(4.0 / DT)):
-        tdoa, value = _peaks([], rng)
-        tr.update(tdoa, value, speech_probability=0.0, usable=USABLE, time_s=t)
-        t += DT
+    t = _pause(tr, rng, 4.0, t)
     assert np.max(np.abs(tr.steered_toa_s - (TALKER_A + drift * t))) < 1e-4
 
 
@@ -556,11 +569,7 @@ def test_a_young_steered_duplicate_keeps_the_beam_with_the_older_tracks_filter()
     rng = np.random.default_rng(5)
     tr = _tracker()
     drift = np.array([0.0, 1e-4, 0.0, 0.0, 0.0])
-    t = 0.0
-    for _ in range(int(3.0 / DT)):
-        tdoa, value = _peaks([(TALKER_A + drift * t, 0.5)], rng)
-        tr.update(tdoa, value, speech_probability=1.0, usable=USABLE, time_s=t)
-        t += DT
+    t = _talk(tr, rng, lambda t: TALKER_A + drift * t, 3.0)
     old = tr.steered
     assert old is not None and abs(old.toa_rate_s_per_s[1] - 1e-4) < 5e-5
     young = tr._new_track("speech", t)
@@ -657,15 +666,8 @@ def test_a_clock_rate_correction_moves_the_drift_the_track_keeps_in_pauses():
     rng = np.random.default_rng(23)
     tr = _tracker()
     drift = np.array([0.0, 120e-6, 0.0, 0.0, 0.0])
-    t = 0.0
-    for _ in range(int(4.0 / DT)):
-        tdoa, value = _peaks([(TALKER_A + drift * t, 0.5)], rng)
-        tr.update(tdoa, value, speech_probability=1.0, usable=USABLE, time_s=t)
-        t += DT
+    t = _talk(tr, rng, lambda t: TALKER_A + drift * t, 4.0)
     toa = TALKER_A + drift * t
     tr.shift(np.zeros(M), delta_rate_s_per_s=-drift)
-    for _ in range(int(3.0 / DT)):
-        tdoa, value = _peaks([], rng)
-        tr.update(tdoa, value, speech_probability=0.0, usable=USABLE, time_s=t)
-        t += DT
+    _pause(tr, rng, 3.0, t)
     assert np.max(np.abs(tr.steered_toa_s - toa)) < 1e-4
