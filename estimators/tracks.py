@@ -315,6 +315,7 @@ class Track:
     n_speech_values: int = 0
     died_s: float | None = None
     death_reason: str = ""
+    relabels: list = field(default_factory=list)   # (time_s, old kind, new kind, why) of each change of label
 
     @property
     def toa_s(self) -> np.ndarray:
@@ -350,7 +351,14 @@ class Track:
                 "last_toa_s": [float(v) for v in self.toa_s],
                 # its matched peak heights in speech frames and in the pauses (``louder_ratio``; None without hits)
                 "speech_peak": round(self.speech_value, 4) if self.n_speech_values else None,
-                "pause_peak": round(self.quiet_value, 4) if self.n_quiet_values else None}
+                "pause_peak": round(self.quiet_value, 4) if self.n_quiet_values else None,
+                "relabels": [{"time_s": round(t, 3), "from": a, "to": b, "why": why}
+                             for t, a, b, why in self.relabels]}
+
+    def relabel(self, kind: TrackKind, time_s: float, why: str) -> None:
+        """Change the label, recording when and why (``relabels``; the report and ``sources.png`` show them)."""
+        self.relabels.append((time_s, self.kind, kind, why))
+        self.kind = kind
 
 
 class SourceTracker:
@@ -860,12 +868,12 @@ class SourceTracker:
         found in the noise spectra that has hits on speech frames and is quiet in the pauses (a talker's
         onset leaked into the noise average before the detector caught it) becomes a talker."""
         if t.kind == "speech" and t.quiet_activity > max(self.noise_quiet_activity, t.speech_rate):
-            t.kind = "noise"
+            t.relabel("noise", self._time_s, "it keeps sounding in the pauses")
             t.activity = 0.0
         elif t.kind == "noise" and t.speech_rate > max(self.noise_quiet_activity, t.quiet_activity) + 0.1 and (
                 not t.quiet_origin or t.quiet_activity < self.noise_quiet_activity):
             # a source found sounding in the pauses turns talker only once the pauses are quiet of it
-            t.kind = "speech"
+            t.relabel("speech", self._time_s, "heard when somebody speaks, quiet in the pauses")
             t.quiet_origin = False
         elif t.kind == "noise" and t.quiet_origin and self.louder_ratio is not None and t.speech_rate > 0.5 and \
                 LOUDER_MIN_HITS <= t.n_speech_values <= LOUDER_MAX_HITS and t.n_quiet_values >= LOUDER_MIN_HITS \
@@ -875,7 +883,8 @@ class SourceTracker:
             # scenes of seeds 7-10 a noise source's peaks were 0.5-1.0 times as high in speech frames as in the
             # pauses, such a talker's 1.6-2.2 times (seed 9's `s45`, seed 10's `s47`). Decided over the source's
             # first speech hits only: white noise at 0 dB (seed 11's `s02`) reached 1.37 after 2.5 s of speech
-            t.kind = "speech"
+            t.relabel("speech", self._time_s, f"its peaks are {t.speech_value / max(t.quiet_value, 1e-12):.1f} times "
+                      "as high when somebody speaks as in the pauses")
             t.quiet_origin = False
             t.quiet_activity = 0.0
             self.n_talkers_from_pauses += 1

@@ -233,7 +233,8 @@ class PipelineState:
         self.enhanced = History(audio_cap)
         self.aligned_input = History(audio_cap)
         # tracker only: every confirmed track's TOA per frame (coarse offsets included), for the sources plot
-        self.source_tracks: dict = {}   # id -> {"kind", "time_s": History, "toa_s": History, "heard": History}
+        self.source_tracks: dict = {}   # id -> {"kind", "time_s": History, "toa_s": History, "heard": History,
+        #                                        "relabels": [(time_s, old kind, new kind, why)]}
 
 
 class Pipeline:
@@ -531,7 +532,8 @@ class Pipeline:
                 if h is None:
                     cap = self.state.history_cap
                     h = self.state.source_tracks[t.track_id] = {"kind": t.kind, "time_s": History(cap),
-                                                                "toa_s": History(cap), "heard": History(cap)}
+                                                                "toa_s": History(cap), "heard": History(cap),
+                                                                "relabels": t.relabels}
                 h["kind"] = t.kind
                 h["time_s"].append(time_s)
                 h["toa_s"].append(coarse + t.toa_s)

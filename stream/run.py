@@ -521,7 +521,7 @@ def _plots(out: Path, pipeline: Pipeline, layout: ChannelLayout, fixture: Fixtur
                     truth[src.name] = (time_s, tv[:, index])
             # the tracks are the pipeline's channels already (the truth was mapped to them above)
             tracks = {k: {"kind": h["kind"], "time_s": h["time_s"], "toa_s": list(h["toa_s"]),
-                          "heard": list(h["heard"])}
+                          "heard": list(h["heard"]), "relabels": list(h.get("relabels", ()))}
                       for k, h in pipeline.state.source_tracks.items()}
             plots.plot_source_tracks(out / "sources.png", tracks=tracks, time_s=time_s,
                                      steered_id=np.asarray(pipeline.state.track_id), truth=truth,

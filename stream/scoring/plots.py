@@ -15,7 +15,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 from matplotlib.patches import Patch  # noqa: E402
 import numpy as np  # noqa: E402
 
-__all__ = ["plot_toa_tracks", "plot_segmental_sar", "plot_source_tracks"]
+__all__ = ["plot_toa_tracks", "plot_segmental_sar", "plot_source_tracks", "label_over_time"]
 
 _DPI = 120
 
@@ -203,6 +203,16 @@ def plot_segmental_sar(
     return _save(fig, path)
 
 
+def label_over_time(time_s: np.ndarray, kind: str, relabels: Sequence = ()) -> np.ndarray:
+    """A track's label in effect at each of ``time_s``: its first label until its first change (``relabels``:
+    ``(time_s, old kind, new kind, ...)`` in time order), and so on; ``kind`` (its last label) without changes."""
+    time_s = np.asarray(time_s)
+    out = np.full(len(time_s), relabels[0][1] if relabels else kind, dtype=object)
+    for when, _, new_kind, *_ in relabels:
+        out[time_s >= when] = new_kind
+    return out
+
+
 def plot_source_tracks(
     path: str | Path,
     *,
@@ -221,15 +231,17 @@ def plot_source_tracks(
     (device 0, or the device the offsets were measured against when device 0 was left out) for every confirmed
     track (talker tracks in colour, noise tracks grey dashed), the frames in which a track was steered
     drawn thick in black over it, and, when given, each true source as a dotted line. Where a track had no hit
-    for a while (``heard`` false) it is the filter's prediction only, drawn faint and thin.
+    for a while (``heard`` false) it is the filter's prediction only, drawn faint and thin. A track whose label
+    changed (``relabels``: a noise source of the pauses that turned out to be a talker, a talker track that kept
+    sounding in the pauses) is drawn in the style of its label at each time, with a triangle where it changed.
 
     Parameters
     ----------
     path : str or Path
         Output PNG file.
     tracks : dict
-        ``id -> {"kind": str, "time_s": list, "toa_s": list of (M,) arrays, "heard": list of bool (optional)}``
-        (``PipelineState.source_tracks``).
+        ``id -> {"kind": str, "time_s": list, "toa_s": list of (M,) arrays, "heard": list of bool (optional),
+        "relabels": list of (time_s, old kind, new kind, why) (optional)}`` (``PipelineState.source_tracks``).
     time_s : ndarray, shape (n_frames,), seconds
         Frame times.
     steered_id : ndarray, shape (n_frames,), int
@@ -262,15 +274,31 @@ def plot_source_tracks(
             t = np.asarray(h["time_s"])
             v = np.vstack(h["toa_s"])
             rel = 1e3 * (v[:, d] - v[:, r])
-            noise = h["kind"] == "noise"
-            colour = "0.6" if noise else colours[n_i % len(colours)]
+            relabels = list(h.get("relabels") or ())
+            noise_at = label_over_time(t, h["kind"], relabels) == "noise"
+            colour = colours[n_i % len(colours)]
             heard = np.asarray(h.get("heard", np.ones(len(t), bool)), bool)   # in step with time_s (History)
-            # where the track had no hit for a while it is only the filter's prediction: faint and thin, so a
-            # drifting prediction is not read as a source that moved
-            ax.plot(t, np.where(heard, rel, np.nan), "--" if noise else "-", color=colour, lw=0.9,
-                    label=(f"track {tid} ({h['kind']})" if p == 0 else None))
-            if not heard.all():
-                ax.plot(t, np.where(heard, np.nan, rel), ":", color=colour, lw=0.7, alpha=0.45)
+            kinds = " -> ".join([relabels[0][1]] + [c[2] for c in relabels]) if relabels else h["kind"]
+            label = f"track {tid} ({kinds})" if p == 0 else None
+            for noise in (False, True):
+                part = noise_at == noise
+                if not part.any():
+                    continue
+                # one frame of overlap at a change of label, so that the line is not broken there
+                part |= np.r_[part[1:], False] if noise else np.r_[False, part[:-1]]
+                c = "0.6" if noise and not relabels else colour
+                # where the track had no hit for a while it is only the filter's prediction: faint and thin, so a
+                # drifting prediction is not read as a source that moved
+                ax.plot(t, np.where(heard & part, rel, np.nan), "--" if noise else "-", color=c, lw=0.9,
+                        label=label)
+                label = None
+                if not heard[part].all():
+                    ax.plot(t, np.where(heard | ~part, np.nan, rel), ":", color=c, lw=0.7, alpha=0.45)
+            for when, _, new_kind, *_ in relabels:
+                k = int(np.searchsorted(t, when))
+                if k < len(t):
+                    ax.plot(t[k], rel[k], "^" if new_kind == "speech" else "v", color=colour, ms=7, mec="k",
+                            mew=0.6)
             on = np.isin(t, steer_times[steered_id == tid])
             if on.any():
                 ax.plot(t, np.where(on, rel, np.nan), "-", color="k", lw=2.6, alpha=0.55,
@@ -279,6 +307,9 @@ def plot_source_tracks(
         ax.grid(alpha=0.3)
     axes[0, 0].plot([], [], "-", color="k", lw=2.6, alpha=0.55, label="steered")
     axes[0, 0].plot([], [], ":", color="0.4", lw=0.7, label="predicted (no hit)")
+    if any(tracks[i].get("relabels") for i in ids):
+        axes[0, 0].plot([], [], "^", color="0.5", mec="k", mew=0.6, label="turned talker")
+        axes[0, 0].plot([], [], "v", color="0.5", mec="k", mew=0.6, label="turned noise")
     axes[0, 0].legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8)
     axes[-1, 0].set_xlabel("time (s)")
     shown = f" ({n_panels} of {m - 1} devices)" if n_panels < m - 1 else ""

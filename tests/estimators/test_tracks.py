@@ -656,6 +656,9 @@ def test_a_talker_heard_in_the_pauses_before_the_first_word_is_steered_when_they
     assert tr.report()["n_talkers_from_pauses"] == 1
     b = next(x for x in tr.report()["tracks"] if np.max(np.abs(np.array(x["last_toa_s"]) - TALKER_B)) < 2.5e-4)
     assert b["kind"] == "speech" and b["speech_peak"] > 1.3 * b["pause_peak"]   # the report shows why
+    (change,) = b["relabels"]   # ... and when its label changed, from what, and why
+    assert (change["from"], change["to"]) == ("noise", "speech")
+    assert 2.0 <= change["time_s"] <= 2.5 and "times as high when somebody speaks" in change["why"]
 
 
 def test_a_clock_rate_correction_moves_the_drift_the_track_keeps_in_pauses():

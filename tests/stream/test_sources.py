@@ -251,3 +251,23 @@ def test_a_reference_that_hears_only_noise_is_left_out_and_the_others_are_aligne
     # the last digits, and the tracker's discrete steps (gates, births) carry that to TOAs up to 0.2 ms apart in
     # some frames. Device 0's noise itself would not correlate at all.
     assert np.corrcoef(ya[mid], yb[mid])[0, 1] > 0.995
+
+
+def test_sources_plot_draws_a_track_in_the_label_it_had_at_each_time(tmp_path):
+    """A noise source of the pauses that turned talker at 2 s, then noise again at 3.5 s: the plot draws it as
+    noise, then as a talker, then as noise (``label_over_time``), with the changes marked; a track never
+    relabelled keeps its one label."""
+    from stream.scoring.plots import label_over_time, plot_source_tracks
+
+    t = np.arange(0.0, 5.0, 0.016)
+    relabels = [(2.0, "noise", "speech", "louder when somebody speaks"), (3.5, "speech", "noise", "in the pauses")]
+    label = label_over_time(t, "noise", relabels)
+    assert set(label[t < 2.0]) == {"noise"} and set(label[(t >= 2.0) & (t < 3.5)]) == {"speech"}
+    assert set(label[t >= 3.5]) == {"noise"}
+    assert set(label_over_time(t, "speech")) == {"speech"}
+    toa = [np.array([0.0, 1e-3, -2e-3])] * len(t)
+    tracks = {4: {"kind": "noise", "time_s": list(t), "toa_s": toa, "heard": [True] * len(t), "relabels": relabels},
+              5: {"kind": "speech", "time_s": list(t), "toa_s": [x + np.array([0.0, 5e-4, 5e-4]) for x in toa], "heard": [True] * len(t)}}
+    path = plot_source_tracks(tmp_path / "sources.png", tracks=tracks, time_s=t,
+                              steered_id=np.where((t >= 2.0) & (t < 3.5), 4, 5))
+    assert path.stat().st_size > 10_000
