@@ -267,7 +267,8 @@ def test_sources_plot_draws_a_track_in_the_label_it_had_at_each_time(tmp_path):
     assert set(label_over_time(t, "speech")) == {"speech"}
     toa = [np.array([0.0, 1e-3, -2e-3])] * len(t)
     tracks = {4: {"kind": "noise", "time_s": list(t), "toa_s": toa, "heard": [True] * len(t), "relabels": relabels},
-              5: {"kind": "speech", "time_s": list(t), "toa_s": [x + np.array([0.0, 5e-4, 5e-4]) for x in toa], "heard": [True] * len(t)}}
+              5: {"kind": "speech", "time_s": list(t), "toa_s": [x + np.array([0.0, 5e-4, 5e-4]) for x in toa],
+                  "heard": [True] * len(t)}}
     path = plot_source_tracks(tmp_path / "sources.png", tracks=tracks, time_s=t,
                               steered_id=np.where((t >= 2.0) & (t < 3.5), 4, 5))
     assert path.stat().st_size > 10_000
