@@ -52,7 +52,9 @@ N best GCC-PHAT peaks of every pair (:class:`estimators.multipeak.NoiseAwareGcc`
 - **Re-anchoring** (the steered track): one device locked on a reflection or a side lobe while the others are
   right shows up as every pair of that device peaking at one other TOA for it; the peaks' votes (decaying over
   about half a second of speech frames) move that device there when they outweigh staying ``REANCHOR_RATIO``
-  to one (``n_reanchored`` in the report).
+  to one (``n_reanchored`` in the report). A peak where a confirmed noise track is predicted in its pair does
+  not vote for a move (``anchor_noise_s``): a noise heard in speech frames (a dish clatter) must not carry the
+  beam onto itself one device at a time.
 - **Take-over** (``"active-talker"``): a talker track confirmed within ``TAKEOVER_S`` (every device) of the
   steered track is the steered talker where it is now (a walking talker outruns a track's capped gate); the
   steered track takes its state and the beam follows at once (``n_taken_over`` in the report).
@@ -124,10 +126,12 @@ def within_but_one(err_s: np.ndarray, within_s: float) -> np.ndarray:
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _anchor_vote(votes, peak_tdoa, peak_value, pred, pair_ok, pair_idx, decay, inv_bin_s, min_peak, gate_bins,
-                 ratio, min_votes):
+                 ratio, min_votes, noise_lag, noise_tol):
     """One frame of :meth:`SourceTracker._reanchor`'s votes, compiled (numpy's per-call overhead was most of its
     cost). ``votes`` (M, bins, centre bin = no move) decays by ``decay`` and takes the frame's peaks: a peak of
-    pair (i, j) at ``pred + d`` votes, with its height, for moving device i by ``d`` and device j by ``-d``.
+    pair (i, j) at ``pred + d`` votes, with its height, for moving device i by ``d`` and device j by ``-d``; not
+    for a move when it lies within ``noise_tol`` of a noise source's TDOA in that pair (``noise_lag`` (pairs, K),
+    NaN for none): that peak is the noise's (a vote for staying still counts).
     Returns (device, bin) of the move with the most votes among the devices whose best bin beyond
     ``gate_bins`` of the centre has more than ``ratio`` times the votes of the three centre bins and more than
     ``min_votes``; (-1, -1) when no device qualifies."""
@@ -145,6 +149,12 @@ def _anchor_vote(votes, peak_tdoa, peak_value, pred, pair_ok, pair_idx, decay, i
             if not w >= min_peak:
                 continue
             b = int(np.rint((peak_tdoa[p, k] - pred[p]) * inv_bin_s))
+            if abs(b) > 1:
+                noise = False
+                for q in range(noise_lag.shape[1]):
+                    noise |= abs(peak_tdoa[p, k] - noise_lag[p, q]) < noise_tol
+                if noise:
+                    continue
             votes[i, min(max(c + b, 0), n_bins - 1)] += w
             votes[j, min(max(c - b, 0), n_bins - 1)] += w
     dev, dev_bin, dev_votes = -1, -1, -1.0
@@ -398,6 +408,10 @@ class SourceTracker:
         A noise source found in the pauses turns talker when, over its first ``LOUDER_MAX_HITS`` hits in speech
         frames, its peaks are this many times higher there than in the pauses (and it is hit in most speech
         frames): a talker heard before the first word. None or 0: never (the tracker before 2026-11-29).
+    anchor_noise_s : float or None
+        A GCC peak within this of a confirmed noise track's predicted TDOA in its pair does not vote for moving a
+        device of the steered track (re-anchoring, module doc): the noise's peaks must not carry the beam onto
+        the noise one device at a time. None or 0: they vote (the tracker before 2026-11-29).
     """
 
     latency_frames = 0   # causal: the steered TOA is the current frame's
@@ -412,7 +426,8 @@ class SourceTracker:
                  noise_every_s: float = 0.25, noise_quiet_activity: float = 0.3,
                  max_rate_s_per_s: float = 3e-3, quiet_confirm_s: float | None = 0.5,
                  quiet_confirm_share: float = 0.7, noise_near_s: float | None = 1.875e-4,
-                 unpinned_s: float | None = None, louder_ratio: float | None = 1.3) -> None:
+                 unpinned_s: float | None = None, louder_ratio: float | None = 1.3,
+                 anchor_noise_s: float | None = 2.5e-4) -> None:
         if int(n_devices) != n_devices or n_devices < 2:
             raise ValueError(f"{n_devices=} must be an integer >= 2")
         if target not in ("active-talker", "nearest"):
@@ -460,10 +475,12 @@ class SourceTracker:
                                      else max(1, int(round(quiet_confirm_s / self.frame_period_s))))
         self.quiet_confirm_share = float(quiet_confirm_share)
         self.noise_near_s = None if not noise_near_s else float(noise_near_s)
+        self.anchor_noise_s = float(anchor_noise_s or 0.0)
         self.young_s = 3.0
         self._bin_s = 2.0 / self.sample_rate_hz
         self._n_bins = 2 * int(math.ceil(0.02 / self._bin_s)) + 1          # moves up to +-20 ms
         self._anchor_gate_bins = max(2, int(math.ceil(self.gate_max_s / self._bin_s)))
+        self._no_noise_lag = np.full((self.n_pairs, 1), np.nan)
         self._half_s_beta = 1.0 - math.exp(-self.frame_period_s / 0.5)   # averages over ~0.5 s of speech frames
         # a floor against moving on next to no votes: one frame of every pair of the device at height 0.15
         self._anchor_min_votes = 0.15 * (self.n_devices - 1)
@@ -683,7 +700,7 @@ class SourceTracker:
             pred, gate = noise[id(t)] if id(t) in noise else self._predicted(t, speech=True)
             # (on the frame's prediction, before any re-anchoring below)
             ok = self._clear_of_noise(pred, noise_pred, pair_ok, min_pairs) if t.kind != "noise" else pair_ok
-            if t is self.steered and self._reanchor(t, peak_tdoa, peak_value, pred, pair_ok):
+            if t is self.steered and self._reanchor(t, peak_tdoa, peak_value, pred, pair_ok, self._noise_lags()):
                 pred, gate = self._predicted(t)
             took, conf = self._match(t, pred, gate, peak_tdoa, peak_value, ok, used, min_pairs, k, picked)
             hit = False
@@ -753,12 +770,15 @@ class SourceTracker:
         t.kalman.update(tdoa, conf)
         return took, conf
 
-    def _reanchor(self, t: Track, peak_tdoa, peak_value, pred, pair_ok) -> bool:
+    def _reanchor(self, t: Track, peak_tdoa, peak_value, pred, pair_ok, noise_lag) -> bool:
         """One device of the steered track locked on a reflection or a side lobe: all its pairs show a peak at
         one other TOA for it, while the others agree with the track. Every peak of pair (i, j) votes for moving
         device i by ``peak - pred`` and device j by the opposite (weighted by its height, averaged over about half
         a second of speech frames, in bins of two samples); a device whose best move beyond the gate has more
         than ``REANCHOR_RATIO`` times the votes of staying is moved there (a known shift, as a re-alignment).
+        A peak where a confirmed noise track is predicted in that pair (``anchor_noise_s``) votes for no move: in
+        seed 10's `s17` (spread, dishes at 10 dB) the dish clatter's peaks moved device 3 of the steered talker
+        track onto the noise, and 32 ms later device 2, so that the beam sat on the noise for 4 s.
         Returns whether a device moved."""
         if t.anchor_votes is None:
             t.anchor_votes = np.zeros((self.n_devices, self._n_bins))
@@ -766,7 +786,8 @@ class SourceTracker:
         c = self._n_bins // 2
         dev, best = _anchor_vote(votes, peak_tdoa, peak_value, pred, pair_ok, self._pairs,
                                  1.0 - self._half_s_beta, 1.0 / self._bin_s, self.min_peak_value,
-                                 self._anchor_gate_bins, REANCHOR_RATIO, self._anchor_min_votes)
+                                 self._anchor_gate_bins, REANCHOR_RATIO, self._anchor_min_votes,
+                                 noise_lag, self.anchor_noise_s)
         if dev < 0:
             return False
         delta = np.zeros(self.n_devices)
@@ -775,6 +796,13 @@ class SourceTracker:
         votes[:] = 0.0
         self.n_reanchored += 1
         return True
+
+    def _noise_lags(self) -> np.ndarray:
+        """Predicted pair TDOAs of the confirmed noise tracks, shape (n_pairs, n_noise) (one column of NaN when
+        there is none or ``anchor_noise_s`` is off)."""
+        cols = [self._predicted(n, speech=True)[0] for n in self.tracks if n.kind == "noise"] \
+            if self.anchor_noise_s else []
+        return np.stack(cols, axis=1) if cols else self._no_noise_lag
 
     def _take_over(self, time_s: float) -> None:
         """A talker track confirmed in this frame within ``TAKEOVER_S`` of the steered track on every device is
