@@ -776,7 +776,7 @@ class SourceTracker:
         device i by ``peak - pred`` and device j by the opposite (weighted by its height, averaged over about half
         a second of speech frames, in bins of two samples); a device whose best move beyond the gate has more
         than ``REANCHOR_RATIO`` times the votes of staying is moved there (a known shift, as a re-alignment).
-        A peak where a confirmed noise track is predicted in that pair (``anchor_noise_s``) votes for no move: in
+        A peak where a confirmed noise track is predicted in that pair (``anchor_noise_s``) does not vote for a move: in
         seed 10's `s17` (spread, dishes at 10 dB) the dish clatter's peaks moved device 3 of the steered talker
         track onto the noise, and 32 ms later device 2, so that the beam sat on the noise for 4 s.
         Returns whether a device moved."""
