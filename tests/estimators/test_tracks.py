@@ -684,7 +684,7 @@ def test_a_noise_heard_in_speech_frames_does_not_drag_the_beam_onto_itself_one_d
     moving them onto it (re-anchoring). With ``anchor_noise_s`` they do not (the noise track's peaks): the beam
     stays on A, within 0.25 ms on every device, in every frame; without it the track was carried onto the clatter
     (seed 10's `s17`: two devices moved in 32 ms, the beam on the dishes for 4 s) and the beam was on A in about
-    half the frames."""
+    70 % of the frames."""
     rng = np.random.default_rng(31)
     clatter = TALKER_A + np.array([0.0, 0.0, 0.0, 3e-3, -2.5e-3])
     tr = _tracker(anchor_noise_s=anchor_noise_s)
