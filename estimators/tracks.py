@@ -365,6 +365,13 @@ class Track:
                 "relabels": [{"time_s": round(t, 3), "from": a, "to": b, "why": why}
                              for t, a, b, why in self.relabels]}
 
+    @property
+    def talker_like(self) -> bool:
+        """So far more like a talker than a noise source: hit in speech frames more often than heard in the
+        pauses, or its peaks higher when somebody speaks than in the pauses."""
+        return self.speech_rate > self.quiet_activity or bool(
+            self.n_speech_values and self.n_quiet_values and self.speech_value > self.quiet_value)
+
     def relabel(self, kind: TrackKind, time_s: float, why: str) -> None:
         """Change the label, recording when and why (``relabels``; the report and ``sources.png`` show them)."""
         self.relabels.append((time_s, self.kind, kind, why))
@@ -799,15 +806,12 @@ class SourceTracker:
 
     def _noise_lags(self) -> np.ndarray:
         """Predicted pair TDOAs of the confirmed noise tracks, shape (n_pairs, n_noise) (one column of NaN when
-        there is none or ``anchor_noise_s`` is off), but not of a noise track that behaves like a talker so far:
-        its peaks higher when somebody speaks than in the pauses, or hit in speech frames more often than it is
-        heard in the pauses. A talker's onset that leaked into the noise spectra is such a track until it turns
-        talker (seed 7's `s32`: it held the steered track off its talker for 0.15 s, −2 dB)."""
+        there is none or ``anchor_noise_s`` is off), but not of a noise track that behaves like a talker so far
+        (:attr:`Track.talker_like`): a talker's onset that leaked into the noise spectra is such a track until it
+        turns talker (seed 7's `s32`: it held the steered track off its talker for 0.15 s, −2 dB)."""
         if not self.anchor_noise_s:
             return self._no_noise_lag
-        cols = [self._predicted(n, speech=True)[0] for n in self.tracks
-                if n.kind == "noise" and not (n.n_speech_values and n.n_quiet_values and n.speech_value > n.quiet_value)
-                and not n.speech_rate > n.quiet_activity]
+        cols = [self._predicted(n, speech=True)[0] for n in self.tracks if n.kind == "noise" and not n.talker_like]
         return np.stack(cols, axis=1) if cols else self._no_noise_lag
 
     def _take_over(self, time_s: float) -> None:

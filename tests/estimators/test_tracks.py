@@ -34,11 +34,11 @@ def _tracker(**kw):
     return SourceTracker(M, frame_period_s=DT, sample_rate_hz=FS, min_peak_value=0.15, **kw)
 
 
-def _noise_alone(tr, rng, seconds=1.0):
-    """``seconds`` of the noise alone (non-speech frames) into ``tr``; returns the time of the next frame."""
-    t = 0.0
+def _noise_alone(tr, rng, seconds=1.0, *, t=0.0, source=NOISE, height=0.6):
+    """``seconds`` of a noise ``source`` alone (non-speech frames, peaks ``height`` high) into ``tr`` from ``t``;
+    returns the time of the next frame."""
     for _ in range(int(seconds / DT)):
-        tdoa, value = _peaks([(NOISE, 0.6)], rng)
+        tdoa, value = _peaks([(source, height)], rng)
         tr.update(tdoa, value, speech_probability=0.0, usable=USABLE, time_s=t)
         t += DT
     return t
@@ -689,10 +689,7 @@ def test_a_noise_heard_in_speech_frames_does_not_drag_the_beam_onto_itself_one_d
     clatter = TALKER_A + np.array([0.0, 0.0, 0.0, 3e-3, -2.5e-3])
     tr = _tracker(anchor_noise_s=anchor_noise_s)
     t = _talk(tr, rng, lambda t: TALKER_A, 2.0)
-    for _ in range(int(1.0 / DT)):
-        tdoa, value = _peaks([(clatter, 0.7)], rng)
-        tr.update(tdoa, value, speech_probability=0.0, usable=USABLE, time_s=t)
-        t += DT
+    t = _noise_alone(tr, rng, 1.0, t=t, source=clatter, height=0.7)
     assert [x["kind"] for x in tr.report()["tracks"]] == ["speech", "noise"]
     steered = []
     for _ in range(int(3.0 / DT)):
