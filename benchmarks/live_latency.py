@@ -8,7 +8,9 @@ cycle that recorded it in the enhanced output (the delay-and-sum of identical cl
 
 Two settings at 16 kHz: ``default`` (the engine's frame and hop: 1024/256, JACK period 256) and
 ``low-latency`` (512/128, JACK period 128), each with the output card's default margin (10 ms queued before
-it plays: ``--output-margin-s``) and with none. Target: at most one frame + one hop + 10 ms. The last stdout line
+it plays: ``--output-margin-s``) and with none; with ``--batch-s S``, also the low-latency setting with the input
+processed in batches of S (``live --batch-s``: less CPU, more latency). Target: at most one frame + one hop + 10 ms
+(for the settings without batches). The last stdout line
 is one JSON object: per setting the median and max latency in ms (the max also after the first 1 s of
 output, once the output queue has shed the burst of the first alignment), the baseline, the target, the underflow
 and overflow counts of the run.
@@ -55,7 +57,8 @@ def detect(y: np.ndarray, threshold: float) -> np.ndarray:
     return above[keep]
 
 
-def measure(setting: str, frame: int, hop: int, period: int, duration_s: float, margin_s: float) -> dict:
+def measure(setting: str, frame: int, hop: int, period: int, duration_s: float, margin_s: float,
+            batch_s: float = 0.0) -> dict:
     from stream.live import run_live
     x, onsets = click_train(duration_s)
     with jack_dummy_server(sample_rate_hz=RATE, period_samples=period, n_channels=N_DEV) as server:
@@ -74,7 +77,7 @@ def measure(setting: str, frame: int, hop: int, period: int, duration_s: float, 
         with tempfile.TemporaryDirectory(prefix="live_latency_") as tmp:
             outcome = run_live([f"system:{k + 1}" for k in range(N_DEV)], tmp, output="system",
                                max_duration_s=duration_s + 1.0, status=False, block_samples=period,
-                               output_margin_s=margin_s,
+                               output_margin_s=margin_s, batch_s=batch_s,
                                overrides=[({"frame_samples": frame, "hop_samples": hop, "plots": False}, "bench")])
         rec = bay.recorded[:bay.n_recorded]
         play0, rec0 = bay.play_start_frame, bay.record_start_frame
@@ -97,7 +100,7 @@ def measure(setting: str, frame: int, hop: int, period: int, duration_s: float, 
     cards = outcome.report["cards"]
     target_ms = 1e3 * (frame + hop) / RATE + 10.0
     return {
-        "setting": setting, "output_margin_s": margin_s, "frame_samples": frame, "hop_samples": hop, "jack_period_samples": period,
+        "setting": setting, "output_margin_s": margin_s, "batch_s": batch_s, "frame_samples": frame, "hop_samples": hop, "jack_period_samples": period,
         "n_clicks": int(len(lat)),
         "latency_ms_median": float(1e3 * np.median(lat) / RATE) if len(lat) else None,
         "latency_ms_max": float(1e3 * np.max(lat) / RATE) if len(lat) else None,
@@ -108,20 +111,27 @@ def measure(setting: str, frame: int, hop: int, period: int, duration_s: float, 
         "n_underflows": cards["output"]["n_underflows"],
         "n_overflows": sum(c["n_overflows"] for c in cards["inputs"]),
         "n_dropped_output_samples": cards["output"]["n_dropped_samples"],
+        "n_handouts": cards.get("n_handouts"),
     }
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--duration-s", type=float, default=20.0, help="click train length per setting")
+    ap.add_argument("--batch-s", type=float, action="append", default=[], metavar="S",
+                    help="also the low-latency setting (10 ms margin) with `live --batch-s S` (repeat)")
+    ap.add_argument("--only-batches", action="store_true", help="only the --batch-s runs")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.ERROR)
-    results = [measure(name, frame, hop, period, args.duration_s, margin)
-               for margin in (0.01, 0.0) for name, frame, hop, period in (("default", 1024, 256, 256),
-                                                                           ("low-latency", 512, 128, 128))]
+    results = [] if args.only_batches else [
+        measure(name, frame, hop, period, args.duration_s, margin)
+        for margin in (0.01, 0.0) for name, frame, hop, period in (("default", 1024, 256, 256),
+                                                                    ("low-latency", 512, 128, 128))]
+    results += [measure("low-latency", 512, 128, 128, args.duration_s, 0.01, batch_s=b) for b in args.batch_s]
     for r in results:
         print(f"{r['setting']:>12} ({r['frame_samples']}/{r['hop_samples']}, JACK period {r['jack_period_samples']}, "
-              f"output margin {1e3 * r['output_margin_s']:g} ms): "
+              f"output margin {1e3 * r['output_margin_s']:g} ms"
+              + (f", batches of {1e3 * r['batch_s']:g} ms" if r["batch_s"] else "") + "): "
               f"latency median {r['latency_ms_median']:.1f} ms, max {r['latency_ms_max_after_first_1_s']:.1f} ms after "
               f"the first 1 s of output ({r['latency_ms_max']:.1f} ms before) over "
               f"{r['n_clicks']} clicks; target {r['target_ms']:.1f} ms; server loopback alone "

@@ -201,6 +201,10 @@ def build_parser() -> argparse.ArgumentParser:
     lp.add_argument("--output-margin-s", type=float, default=0.01,
                     help="audio queued before the output card plays: a margin against hiccups, paid in latency, "
                          "rounded down to whole periods of the card (default 0.01; 0: lowest latency)")
+    lp.add_argument("--batch-s", type=float, default=0.0, metavar="S",
+                    help="process the input in batches of this much audio: fewer wake-ups of the stream, less CPU "
+                         "(a quarter less at 0.032 with 8 devices at 16 kHz, hop 128), about that much more latency "
+                         "(+22 ms at 0.032; default 0: every card period)")
     lp.add_argument("--duration", type=float, metavar="S", help="stop after this many seconds of audio from the reference card (default: Ctrl-C)")
     lp.add_argument("--no-status", dest="status", action="store_false", help="no live status line")
     lp.add_argument("--config", help="TOML file with engine options")
@@ -476,10 +480,12 @@ def _run_live(args: argparse.Namespace) -> int:
         layers.append((_overrides(args), "command line"))
         if args.duration is not None and not args.duration > 0:
             raise ConfigError(f"--duration {args.duration} must be > 0 seconds")
+        if not 0 <= args.batch_s <= 1.0:
+            raise ConfigError(f"--batch-s {args.batch_s} must be in 0..1 seconds")
         outcome = run_live(args.input, args.out, output=args.output, record=args.record,
                            sample_rate_hz=args.card_rate_hz, block_samples=args.blocksize, overrides=layers,
                            status=args.status, max_duration_s=args.duration,
-                           output_margin_s=args.output_margin_s)
+                           output_margin_s=args.output_margin_s, batch_s=args.batch_s)
     except AdhocArrayError as err:
         print(f"adhoc-array: {err}", file=sys.stderr)
         return 2

@@ -126,7 +126,7 @@ def run_live(inputs: Sequence[str], out_dir: str | Path, *, output: str | None =
              sample_rate_hz: float | None = None, block_samples: int = 0, config: EngineConfig | None = None,
              overrides: Sequence[tuple[dict[str, Any], str]] = (), names: Sequence[str] | None = None,
              status: bool | TextIO = True, stall_s: float = 1.0, max_duration_s: float | None = None,
-             output_margin_s: float = 0.01, speech=None) -> RunOutcome:
+             output_margin_s: float = 0.01, batch_s: float = 0.0, speech=None) -> RunOutcome:
     """Stream from sound cards until stopped (SIGINT/SIGTERM, or ``source.stop()``), writing every output.
 
     Parameters
@@ -150,12 +150,15 @@ def run_live(inputs: Sequence[str], out_dir: str | Path, *, output: str | None =
     output_margin_s : float
         Audio queued for the output card before it plays (:class:`~stream.cards.CardPlayback` ``queue_s``):
         a margin against hiccups of the stream loop, paid in latency; 0 for the lowest latency.
+    batch_s : float
+        Process the input in batches of this much audio (:class:`~stream.cards.CardSource` ``batch_s``): less
+        CPU, that much more latency; 0 (default): every card period.
     """
     cfg = merge(config or EngineConfig(), LIVE_DEFAULTS, source="live defaults")
     for values, src in overrides:
         cfg = merge(cfg, values, source=src)
     source = CardSource(inputs, sample_rate_hz=sample_rate_hz, block_samples=block_samples, stall_s=stall_s,
-                        names=names, max_duration_s=max_duration_s)
+                        names=names, max_duration_s=max_duration_s, batch_s=batch_s)
     state: dict[str, Any] = {}
 
     def on_frame(frame) -> None:
@@ -205,6 +208,7 @@ def run_live(inputs: Sequence[str], out_dir: str | Path, *, output: str | None =
         if "playback" in state:
             pb = state["playback"]
             cards["output"] = {"card": pb.info.name, "latency_s": pb.latency_s, **pb.counters()}
+        cards["batch_s"], cards["n_handouts"] = source.batch_s, source.n_handouts
         if record is not None:
             cards["recorded_to"] = str(record)
         if "status" in state:

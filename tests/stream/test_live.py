@@ -174,6 +174,49 @@ def test_live_equals_replay_and_the_recording_replays_exactly(jack, bay, tmp_pat
     np.testing.assert_array_equal(ref.pipeline.enhanced_signal(), y_live)
 
 
+def test_live_in_batches_wakes_once_a_batch_and_gives_what_its_recording_replays_to(jack, bay, tmp_path):
+    """``batch_s``: the cards' audio is handed out once 32 ms are there (4 periods of 128 samples), not every
+    period; nothing is lost (no ring gaps, the recording holds the whole signal) and the output is what replaying
+    the recording gives, sample for sample."""
+    from stream.live import run_live
+    from stream.run import run_replay
+    fx = load_fixture(REPO_FIXTURES / "meeting_table")
+    sig = np.stack([sf.read(d.path, dtype="float32")[0] for d in fx.devices], axis=1)[: 5 * RATE]
+
+    def take():
+        shutil.rmtree(tmp_path / "live", ignore_errors=True)
+        shutil.rmtree(tmp_path / "take", ignore_errors=True)
+        _feed(bay, sig, 6, output=True)
+        return run_live([f"system:{k + 1}" for k in range(6)], tmp_path / "live", output="system",
+                        record=tmp_path / "take", max_duration_s=5.5, status=False, batch_s=0.032,
+                        names=[d.name for d in fx.devices])
+
+    live, clean = _clean_take(bay, take)
+    rep = live.report
+    assert rep["status"] == "ok", rep.get("error")
+    cards = rep["cards"]
+    assert cards["batch_s"] == 0.032
+    audio_s = rep["stream"]["audio_s"]
+    # once a batch (a late card lets a batch go 20 ms after it was due), not once a period (8 ms: about 690)
+    assert audio_s / 0.052 - 5 <= cards["n_handouts"] <= audio_s / 0.032 + 5, (cards["n_handouts"], audio_s)
+    assert all(c["n_gaps"] == 0 for c in cards["inputs"]), cards
+    assert bay.n_recorded > 0 and np.abs(bay.recorded[:bay.n_recorded]).max() > 0.01
+    again = run_replay([tmp_path / "take"], tmp_path / "again", overrides=[({"plots": False}, "test")])
+    np.testing.assert_array_equal(sf.read(tmp_path / "live" / "enhanced.wav", dtype="float32")[0],
+                                  sf.read(tmp_path / "again" / "enhanced.wav", dtype="float32")[0])
+    if clean:   # without a server xrun the recording is the whole signal, after the card's lead of silence
+        rec = sf.read(tmp_path / "take" / f"dev00_{fx.devices[0].name}.wav", dtype="float32")[0]
+        lead = _lead(rec)
+        assert np.array_equal(rec[lead:lead + len(sig)], sig[: len(rec) - lead, 0])
+
+
+def test_a_batch_out_of_range_is_one_sentence_before_any_card_opens(tmp_path, capsys):
+    from stream.cli import main
+    assert main(["live", "--input", "system", "--out", str(tmp_path / "o"), "--batch-s", "2"]) == 2
+    assert "--batch-s 2.0 must be in 0..1 seconds" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
 def _valid_outputs(out: Path, rec: Path | None = None) -> dict:
     report = json.loads((out / "report.json").read_text())
     info = sf.info(str(out / "enhanced.wav"))
