@@ -198,7 +198,7 @@ def test_live_in_batches_wakes_once_a_batch_and_gives_what_its_recording_replays
     assert cards["batch_s"] == 0.032
     audio_s = rep["stream"]["audio_s"]
     # once a batch (a late card lets a batch go 20 ms after it was due), not once a period (8 ms: about 690)
-    assert audio_s / 0.052 - 5 <= cards["n_handouts"] <= audio_s / 0.032 + 5, (cards["n_handouts"], audio_s)
+    assert audio_s / 0.052 - 5 <= cards["n_handouts"] <= 1.1 * audio_s / 0.032 + 5, (cards["n_handouts"], audio_s)
     assert all(c["n_gaps"] == 0 for c in cards["inputs"]), cards
     assert bay.n_recorded > 0 and np.abs(bay.recorded[:bay.n_recorded]).max() > 0.01
     again = run_replay([tmp_path / "take"], tmp_path / "again", overrides=[({"plots": False}, "test")])
