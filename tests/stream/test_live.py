@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -305,6 +306,45 @@ def test_a_card_that_stops_is_ended_in_one_sentence(jack, bay, tmp_path):
     problems = [p for d in outcome.report["devices"] for p in d["problems"]]
     assert any("stopped delivering audio after" in p and "the stream goes on without it" in p for p in problems)
     assert outcome.report["stream"]["audio_s"] >= 6.0
+    _valid_outputs(tmp_path / "out")
+
+
+def test_a_card_that_stops_while_another_delivers_is_ended_in_one_sentence(jack, bay, tmp_path):
+    """Two cards (two PortAudio streams on the server: each --input opened as a card of its own), and one stops
+    for real after 4 s while the other goes on delivering: that card is ended with its sentence within about
+    ``stall_s``, and the stream goes on with the other."""
+    from stream.cards import CardSource
+    from stream.config import EngineConfig
+    from stream.live import LIVE_DEFAULTS
+    from stream.run import run_stream
+    rng = np.random.default_rng(7)
+    _feed(bay, (0.1 * rng.standard_normal((20 * RATE, 2))).astype(np.float32), 2)
+
+    class TwoCards(CardSource):
+        def open(self):   # the server's one card opened once per --input: two streams, two clocks to the engine
+            super().open()
+            card = self._cards[0]
+            if len(card.devices) == 2:
+                from stream.cards import _Card
+                other = _Card(card.info, card.n_channels, card.rate_hz, card.block_samples)
+                other.devices, other.columns = [card.devices.pop()], [card.columns.pop()]
+                other.stream = self._open_stream(other)
+                self._cards.append(other)
+
+        def _drain(self, card, seq):   # once 4 s are captured, the second card's stream stops for real
+            if card is self._cards[1] and card.n_consumed_clock >= 4 * RATE and card.stream.active:
+                card.stream.stop()
+            yield from super()._drain(card, seq)
+
+    src = TwoCards(["system:1", "system:2"], stall_s=0.5, max_duration_s=9.0)
+    outcome = run_stream(src, tmp_path / "out", config=EngineConfig(**LIVE_DEFAULTS, plots=False),
+                         handle_signals=False)
+    assert len(src._cards) == 2
+    problems = outcome.report["devices"][1]["problems"]
+    assert any(re.search(r"card 'system' stopped delivering audio after 4\.\d\d s \(its stream stopped",
+                         p) and "the stream goes on without it" in p for p in problems), problems
+    assert not outcome.report["devices"][0]["problems"]
+    assert outcome.report["stream"]["audio_s"] >= 8.5
     _valid_outputs(tmp_path / "out")
 
 
