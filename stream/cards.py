@@ -511,21 +511,15 @@ class CardSource:
             if limit is not None and limit[0].n_consumed_clock >= limit[1]:
                 self._stop.set()
             stopping = self._stop.is_set()
-            if self.batch_s and not stopping and not self._batch_due():
-                for card in self._stalled_cards():
-                    yield from self._end(card, seq)
-                if all(c.ended for c in self._cards):
-                    return
-                self._wake.wait(0.05)
-                continue
-            self._last_batch_s = time.monotonic()
             got = False
-            for card in self._cards:
-                if not card.ended:
-                    for frame in self._drain(card, seq):
-                        got = True
-                        yield frame
-            self.n_handouts += got
+            if not self.batch_s or stopping or self._batch_due():   # else: nothing handed out this round
+                self._last_batch_s = time.monotonic()
+                for card in self._cards:
+                    if not card.ended:
+                        for frame in self._drain(card, seq):
+                            got = True
+                            yield frame
+                self.n_handouts += got
             if stopping:   # every device's stream ends with what it has
                 for card in self._cards:
                     yield from self._end(card, seq)
