@@ -172,6 +172,7 @@ class ToaCsvSink:
         extra = ["steered_track", "speech_probability"] if tracks else []
         self._writer.writerow(["time_s", *[f"toa_s_{k}_{n}" for k, n in enumerate(device_names)], "gated", *extra])
         self.n_rows = 0
+        self.n_devices = len(device_names)
         self._row_devices, self._row_format = -1, ""
 
     def write(self, result) -> None:
@@ -184,6 +185,9 @@ class ToaCsvSink:
                   speech_probability: float = float("nan")) -> None:
         n = len(toa_s)
         if n != self._row_devices:   # one %-format per row (a csv row of f-strings took 2.7 times as long)
+            if n != self.n_devices:   # (checked once: the format is built for the header's columns only)
+                raise ValueError(f"{self.path.name} has {self.n_devices} device columns; a row with {n} TOAs "
+                                 "would not line up with them.")
             self._row_devices = n
             self._row_format = ",".join(["%.6f", *["%.9f"] * n, "%d", *(["%d", "%.3f"] if self.tracks else [])])
             self._row_format += self._writer.dialect.lineterminator

@@ -38,3 +38,18 @@ def test_toa_csv_reads_back_what_was_written_to_its_precision(tmp_path, tracks):
             assert int(line[5]) == track_id
             assert float(line[6]) == pytest.approx(p, abs=5e-4, nan_ok=True)
     assert read[-1][1:4] == ["nan", "-0.000000000", "inf"]
+
+
+def test_a_row_that_does_not_match_the_header_is_one_sentence(tmp_path):
+    """A row with another number of TOAs than the header has device columns would be read back into the wrong
+    columns: it is refused in one sentence, and the rows before it stay in the file."""
+    path = tmp_path / "toa.csv"
+    sink = ToaCsvSink(path, ["phone", "laptop", "pi"], tracks=True)
+    sink.write_row(0.0, np.zeros(3), False)
+    with pytest.raises(ValueError, match=r"^toa.csv has 3 device columns; a row with 2 TOAs would not line up"):
+        sink.write_row(0.016, np.zeros(2), False)
+    sink.write_row(0.032, np.ones(3), False)
+    sink.close()
+    with open(path, newline="") as fh:
+        rows = list(csv.reader(fh))
+    assert len(rows) == 3 and rows[1][1:4] == ["0.000000000"] * 3 and rows[2][1:4] == ["1.000000000"] * 3
