@@ -173,7 +173,9 @@ class ToaCsvSink:
         self._writer.writerow(["time_s", *[f"toa_s_{k}_{n}" for k, n in enumerate(device_names)], "gated", *extra])
         self.n_rows = 0
         self.n_devices = len(device_names)
-        self._row_devices, self._row_format = -1, ""
+        # one %-format per row (a csv row of f-strings took 2.7 times as long)
+        self._row_format = ",".join(["%.6f", *["%.9f"] * self.n_devices, "%d",
+                                     *(["%d", "%.3f"] if tracks else [])]) + self._writer.dialect.lineterminator
 
     def write(self, result) -> None:
         """One row from a :class:`~stream.messages.HopResult` (none for hops without a frame)."""
@@ -183,14 +185,9 @@ class ToaCsvSink:
 
     def write_row(self, time_s: float, toa_s: np.ndarray, gated: bool, track_id: int = -1,
                   speech_probability: float = float("nan")) -> None:
-        n = len(toa_s)
-        if n != self._row_devices:   # one %-format per row (a csv row of f-strings took 2.7 times as long)
-            if n != self.n_devices:   # (checked once: the format is built for the header's columns only)
-                raise ValueError(f"{self.path.name} has {self.n_devices} device columns; a row with {n} TOAs "
-                                 "would not line up with them.")
-            self._row_devices = n
-            self._row_format = ",".join(["%.6f", *["%.9f"] * n, "%d", *(["%d", "%.3f"] if self.tracks else [])])
-            self._row_format += self._writer.dialect.lineterminator
+        if len(toa_s) != self.n_devices:
+            raise ValueError(f"{self.path.name} has {self.n_devices} device columns; a row with {len(toa_s)} TOAs "
+                             "would not line up with them.")
         toa = np.asarray(toa_s, np.float64).tolist()
         values = (time_s, *toa, gated, track_id, speech_probability) if self.tracks else \
             (time_s, *toa, gated)
