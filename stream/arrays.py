@@ -36,7 +36,7 @@ import numpy as np
 import soundfile as sf
 
 from .config import load_toml
-from .errors import ConfigError, InputFileError
+from .errors import ConfigError, InputFileError, why_unreadable
 
 log = logging.getLogger(__name__)
 
@@ -100,7 +100,8 @@ def _read(spec: ArraySpec) -> tuple[np.ndarray, float]:
     try:
         x, fs = sf.read(str(spec.file), dtype="float32", always_2d=True)
     except (sf.LibsndfileError, RuntimeError, OSError) as err:
-        raise InputFileError(f"Array '{spec.name}': {spec.file} is not a readable audio file ({err}).") from None
+        raise InputFileError(f"Array '{spec.name}': {spec.file} is not a readable audio file "
+                             f"({why_unreadable(spec.file, err)}).") from None
     if x.shape[1] != len(spec.mics_m):
         raise InputFileError(f"Array '{spec.name}': {spec.file} has {x.shape[1]} channels but the arrays file "
                              f"gives {len(spec.mics_m)} mic positions; they must match, channel k = mic k.")

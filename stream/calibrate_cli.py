@@ -13,7 +13,7 @@ import estimators
 
 from .calibration import MIN_DETECTIONS, CalibrationError, CalibrationSnapshot, Method, calibrate, solve_geometry
 from .calibration_files import load_measurements, load_odometry_csv
-from .errors import ConfigError, InputFileError
+from .errors import ConfigError, InputFileError, why_unreadable
 from .geometry import Geometry
 
 log = logging.getLogger(__name__)
@@ -24,7 +24,7 @@ def _read_mono(path: Path) -> tuple[np.ndarray, float]:
     try:
         x, rate = sf.read(str(path), dtype="float64", always_2d=True)
     except (sf.LibsndfileError, RuntimeError, OSError) as err:
-        raise InputFileError(f"{path} is not a readable audio file ({err}).") from None
+        raise InputFileError(f"{path} is not a readable audio file ({why_unreadable(path, err)}).") from None
     return x.mean(axis=1), float(rate)
 
 

@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any, Sequence
 
 from .config import EngineConfig, load_toml
-from .errors import AdhocArrayError, ConfigError
+from .errors import AdhocArrayError, ConfigError, why_unreadable
 
 
 def _add_engine_options(p: argparse.ArgumentParser) -> None:
@@ -160,7 +160,7 @@ def _device_source(args: argparse.Namespace):
         try:
             rate = sf.info(str(path)).samplerate
         except Exception as err:  # noqa: BLE001 - soundfile's errors: one sentence
-            raise ConfigError(f"--input {path} is not a readable audio file ({err}).") from None
+            raise ConfigError(f"--input {path} is not a readable audio file ({why_unreadable(path, err)}).") from None
         if not args.speed > 0:
             raise ConfigError(f"--speed {args.speed} must be > 0")
         return ReplaySource([path], block_s=args.frame_samples / rate, speed=args.speed, names=[args.name],

@@ -6,6 +6,9 @@ exactly as a live source would, optionally paced at real time (``speed=1.0``).
 from __future__ import annotations
 
 import logging
+import os
+import sys
+import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -14,7 +17,7 @@ from typing import Iterator, Sequence
 import numpy as np
 import soundfile as sf
 
-from .errors import InputFileError
+from .errors import InputFileError, why_unreadable
 from .messages import Frame, FrameFlag
 
 log = logging.getLogger(__name__)
@@ -58,7 +61,8 @@ def open_device_file(path: str | Path, *, name: str | None = None) -> tuple[sf.S
         handle = sf.SoundFile(str(path))
     except (sf.LibsndfileError, RuntimeError, OSError) as err:
         info.usable = False
-        info.problem(f"Device '{info.name}': {path} is not a readable audio file ({err}); it is left out.")
+        info.problem(f"Device '{info.name}': {path} is not a readable audio file ({why_unreadable(path, err)}); "
+                     "it is left out.")
         return None, info
     info.sample_rate_hz = float(handle.samplerate)
     info.n_file_channels = int(handle.channels)
@@ -78,10 +82,70 @@ READ_AHEAD_S = 1.0   # each file is read this much at a time: a libsndfile call 
 #                      more than converting its samples
 
 
+DECODER_TAG = b"libmpg123"   # the lines libsndfile's MP3 decoder prints on stderr carry its source path
+
+
+class DecoderMessages:
+    """Keeps what C code prints on the process's stderr (file descriptor 2) during a call, and counts the lines of
+    libsndfile's MP3 decoder (libmpg123) among them; other lines are written back to stderr.
+
+    libmpg123 prints an "error: part2_3_length (...) too large for available bit count" line at some boundaries of
+    the blocks libsndfile is asked for: the 9 shared locaR recordings print 6 to 604 such lines read in 100,000- to
+    1152-sample blocks, none read whole, and give the same samples (to 1e-8) either way. Printed amid the
+    stream's own messages they read as a damaged file, so they are counted and logged instead.
+    Where file descriptor 2 cannot be redirected, the call runs as it is.
+    """
+
+    def __init__(self) -> None:
+        self.n_lines = 0
+        self.first = ""
+        self._tmp = None
+
+    def run(self, call, *args, **kwargs):
+        """``call(*args, **kwargs)`` with stderr kept."""
+        try:
+            if self._tmp is None:
+                self._tmp = tempfile.TemporaryFile()
+            sys.stderr.flush()
+            saved = os.dup(2)
+        except (OSError, ValueError, AttributeError):
+            return call(*args, **kwargs)
+        try:
+            os.dup2(self._tmp.fileno(), 2)
+            try:
+                return call(*args, **kwargs)
+            finally:
+                os.dup2(saved, 2)
+        finally:
+            os.close(saved)
+            self._sort()
+
+    def _sort(self) -> None:
+        self._tmp.seek(0)
+        text = self._tmp.read()
+        self._tmp.seek(0)
+        self._tmp.truncate()
+        other = []
+        for line in text.splitlines(keepends=True):
+            if DECODER_TAG in line:
+                if not self.n_lines:
+                    self.first = line.decode(errors="replace").split("]", 1)[-1].strip()
+                self.n_lines += 1
+            else:
+                other.append(line)
+        if other:
+            os.write(2, b"".join(other))
+
+    def close(self) -> None:
+        if self._tmp is not None:
+            self._tmp.close()
+            self._tmp = None
+
+
 class _ReadAhead:
     """A file read in chunks of ``chunk`` samples and handed out block by block (fewer, larger libsndfile
     calls). A read error ends the file after the samples read before it; :meth:`read` reports it once those are
-    handed out."""
+    handed out. An MP3 file's decoder messages are kept off the terminal (:class:`DecoderMessages`)."""
 
     def __init__(self, handle: sf.SoundFile, *, chunk: int) -> None:
         self.handle = handle
@@ -89,6 +153,7 @@ class _ReadAhead:
         self._buf = np.zeros((0, max(1, handle.channels)), np.float32)
         self._eof = False
         self._error: Exception | None = None
+        self.decoder = DecoderMessages() if handle.format == "MP3" else None
 
     def read(self, want: int) -> tuple[np.ndarray, Exception | None]:
         """Up to ``want`` samples, shape (n, channels), float32; and the read error, once the samples before it
@@ -96,7 +161,10 @@ class _ReadAhead:
         if len(self._buf) < want and not self._eof:
             n = max(want - len(self._buf), self.chunk)
             try:
-                data = self.handle.read(n, dtype="float32", always_2d=True)
+                if self.decoder is None:
+                    data = self.handle.read(n, dtype="float32", always_2d=True)
+                else:
+                    data = self.decoder.run(self.handle.read, n, dtype="float32", always_2d=True)
             except (sf.LibsndfileError, RuntimeError) as err:
                 data, self._error = self._buf[:0], err
             self._eof = len(data) < n
@@ -109,6 +177,8 @@ class _ReadAhead:
 
     def close(self) -> None:
         self.handle.close()
+        if self.decoder is not None:
+            self.decoder.close()
 
 
 class ReplaySource:
@@ -263,6 +333,10 @@ class ReplaySource:
                 if last:
                     flags |= FrameFlag.LAST
                     ended[d] = True
+                    if handle.decoder is not None and handle.decoder.n_lines:
+                        log.info("Device '%s': the MP3 decoder printed %d messages while %s was read in blocks "
+                                 "(the first: %s); they are logged here instead of on the terminal.", info.name,
+                                 handle.decoder.n_lines, info.path, handle.decoder.first)
                 info.n_read_samples += len(samples)
                 yield Frame(device_id=d, seq=seq[d], first_sample=pos[d], sample_rate_hz=rate,
                             samples=np.ascontiguousarray(samples, dtype=np.float32), flags=flags)

@@ -1,5 +1,6 @@
 """Replay end to end on synthetic devices with known delays, and every kind of bad input."""
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -9,7 +10,7 @@ import soundfile as sf
 from stream.cli import main
 from stream.config import EngineConfig
 from stream.errors import ConfigError, InputFileError, StreamError
-from stream.replay import ReplaySource
+from stream.replay import DecoderMessages, ReplaySource, open_device_file
 from stream.run import run_replay
 
 FAST = dict(plots=False, progress=False, align_window_s=4.0, max_offset_s=2.5)
@@ -83,6 +84,49 @@ def test_missing_and_corrupt_files_are_left_out_with_a_sentence(make_devices, tm
     assert any("does not exist" in p for p in problems)
     assert any("not a readable audio file" in p for p in problems)
     assert outcome.report["stream"]["n_devices"] == 3
+
+
+def test_a_phone_recording_libsndfile_cannot_read_says_how_to_convert_it(tmp_path):
+    phone = tmp_path / "meeting phone.m4a"
+    phone.write_bytes(b"\x00\x00\x00\x20ftypM4A " + bytes(200))
+    handle, info = open_device_file(phone)
+    assert handle is None and not info.usable
+    (sentence,) = info.problems
+    assert "not a readable audio file" in sentence and "but not M4A: convert it first" in sentence
+    assert "ffmpeg -i 'meeting phone.m4a' 'meeting phone.flac'" in sentence and sentence.endswith("it is left out.")
+    assert sentence.replace("e.g. ", "").count(". ") == 0   # one sentence
+    corrupt = tmp_path / "corrupt.wav"
+    corrupt.write_bytes(b"RIFF" + bytes(40))
+    _, info = open_device_file(corrupt)
+    assert "ffmpeg" not in info.problems[0]                 # a format libsndfile reads: no advice to convert
+
+
+def test_the_mp3_decoders_stderr_lines_are_counted_not_printed(capfd):
+    """libmpg123 prints lines on file descriptor 2 from C; they are counted, other lines go through."""
+    kept = DecoderMessages()
+
+    def decode(n):
+        os.write(2, b"[src/libmpg123/layer3.c:INT123_do_layer3():1774] error: part2_3_length (2464) too large\n")
+        os.write(2, b"somebody else's line\n")
+        os.write(2, b"[src/libmpg123/layer3.c:INT123_do_layer3():1774] error: part2_3_length (2208) too large\n")
+        return n * 2
+
+    assert kept.run(decode, 21) == 42
+    assert kept.run(decode, 1) == 2
+    kept.close()
+    assert kept.n_lines == 4 and kept.first == "error: part2_3_length (2464) too large"
+    assert capfd.readouterr().err == "somebody else's line\n" * 2
+
+
+def test_an_mp3_file_replays_sample_for_sample_with_its_decoder_quiet(tmp_path, capfd, caplog):
+    rng = np.random.default_rng(5)
+    x = (0.1 * rng.standard_normal(3 * 16000)).astype(np.float32)
+    sf.write(tmp_path / "a.mp3", x, 16000, format="MP3", subtype="MPEG_LAYER_III")
+    whole, _ = sf.read(tmp_path / "a.mp3", dtype="float32")
+    with ReplaySource([tmp_path / "a.mp3"], block_s=0.02) as src:
+        frames = list(src)
+    np.testing.assert_allclose(np.concatenate([f.samples for f in frames]), whole, atol=1e-6)
+    assert "libmpg123" not in capfd.readouterr().err
 
 
 def test_truncated_file_keeps_streaming(make_devices, tmp_path):
