@@ -90,8 +90,8 @@ class DecoderMessages:
     libsndfile's MP3 decoder (libmpg123) among them; other lines are written back to stderr.
 
     libmpg123 prints an "error: part2_3_length (...) too large for available bit count" line at some boundaries of
-    the blocks libsndfile is asked for: the 9 shared locaR recordings print 6 to 604 such lines read in 100,000- to
-    1152-sample blocks, none read whole, and give the same samples (to 1e-8) either way. Printed amid the
+    the blocks libsndfile is asked for: the 9 shared locaR recordings print 6 to 604 such lines between them, read in
+    100,000- to 1152-sample blocks, none read whole, and give the same samples (to 1e-8) either way. Printed amid the
     stream's own messages they read as a damaged file, so they are counted and logged instead.
     Where file descriptor 2 cannot be redirected, the call runs as it is.
     """
@@ -269,7 +269,11 @@ class ReplaySource:
                 self.active.append(info)
 
     def close(self) -> None:
-        for h in self._handles:
+        for info, h in zip(self.active, self._handles):
+            if h.decoder is not None and h.decoder.n_lines:
+                log.info("Device '%s': the MP3 decoder printed %d messages while %s was read in blocks (the first: "
+                         "%s); they are logged here instead of on the terminal.", info.name, h.decoder.n_lines,
+                         info.path, h.decoder.first)
             h.close()
         self._handles = []
 
@@ -333,10 +337,6 @@ class ReplaySource:
                 if last:
                     flags |= FrameFlag.LAST
                     ended[d] = True
-                    if handle.decoder is not None and handle.decoder.n_lines:
-                        log.info("Device '%s': the MP3 decoder printed %d messages while %s was read in blocks "
-                                 "(the first: %s); they are logged here instead of on the terminal.", info.name,
-                                 handle.decoder.n_lines, info.path, handle.decoder.first)
                 info.n_read_samples += len(samples)
                 yield Frame(device_id=d, seq=seq[d], first_sample=pos[d], sample_rate_hz=rate,
                             samples=np.ascontiguousarray(samples, dtype=np.float32), flags=flags)

@@ -1,5 +1,6 @@
 """Replay end to end on synthetic devices with known delays, and every kind of bad input."""
 import json
+import logging
 import os
 from pathlib import Path
 
@@ -119,14 +120,22 @@ def test_the_mp3_decoders_stderr_lines_are_counted_not_printed(capfd):
 
 
 def test_an_mp3_file_replays_sample_for_sample_with_its_decoder_quiet(tmp_path, capfd, caplog):
-    rng = np.random.default_rng(5)
-    x = (0.1 * rng.standard_normal(3 * 16000)).astype(np.float32)
-    sf.write(tmp_path / "a.mp3", x, 16000, format="MP3", subtype="MPEG_LAYER_III")
+    """White noise as a constant-bitrate MP3 at 24 kHz makes libmpg123 print its "part2_3_length" lines when read
+    a second at a time (as a replay reads), none when read whole, with the same samples: the replay keeps them
+    off stderr and logs their count in one line when it closes."""
+    caplog.set_level(logging.INFO, logger="stream.replay")
+    rng = np.random.default_rng(1)
+    x = (0.3 * rng.standard_normal(5 * 24000)).astype(np.float32)
+    sf.write(tmp_path / "a.mp3", x, 24000, format="MP3", subtype="MPEG_LAYER_III", bitrate_mode="CONSTANT",
+             compression_level=0.0)
     whole, _ = sf.read(tmp_path / "a.mp3", dtype="float32")
+    capfd.readouterr()
     with ReplaySource([tmp_path / "a.mp3"], block_s=0.02) as src:
         frames = list(src)
     np.testing.assert_allclose(np.concatenate([f.samples for f in frames]), whole, atol=1e-6)
     assert "libmpg123" not in capfd.readouterr().err
+    (line,) = [r.getMessage() for r in caplog.records if "MP3 decoder" in r.getMessage()]
+    assert "Device 'a': the MP3 decoder printed" in line and "part2_3_length" in line
 
 
 def test_truncated_file_keeps_streaming(make_devices, tmp_path):
