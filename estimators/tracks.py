@@ -15,7 +15,7 @@ N best GCC-PHAT peaks of every pair (:class:`estimators.multipeak.NoiseAwareGcc`
   ``noise_near_s`` of a talker track's prediction is left out of that track's update (``n_pairs_near_noise`` in
   the report): there the noise's peak merges with the talker's into one lobe or sits beside it, and the nearest
   peak may be the noise's, a bias of a sample or two that holds as long as the sources do.
-  With ``unpinned_s`` (off by default: measured, README), a device of a track that no matched pair has
+  With ``unpinned_s`` (off by default: measured, docs/tracking-log.md), a device of a track that no matched pair has
   measured for that long (speech frames) goes on at its clock drift rate (the track's average over the hits that
   measured it), not at a rate nothing measures.
 - **Birth** (speech frames only): from the peaks no track took, the highest of every pair, a robust
