@@ -257,7 +257,8 @@ def plot_source_tracks(
     r = int(reference) if 0 <= int(reference) < m else 0
     panel_devices = [d for d in range(m) if d != r][:n_panels]
     names = list(device_names) if device_names is not None else [f"device {i}" for i in range(m)]
-    fig, axes = plt.subplots(n_panels, 1, figsize=(10, 2.2 * n_panels + 0.8), sharex=True, squeeze=False)
+    height_in = 2.2 * n_panels + 0.8
+    fig, axes = plt.subplots(n_panels, 1, figsize=(10, height_in), sharex=True, squeeze=False)
     colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     steer_times = np.asarray(time_s)
     steered_id = np.asarray(steered_id)
@@ -314,5 +315,7 @@ def plot_source_tracks(
     axes[-1, 0].set_xlabel("time (s)")
     shown = f" ({n_panels} of {m - 1} devices)" if n_panels < m - 1 else ""
     fig.suptitle((title or "Tracked sources: relative TOA, steered track thick") + shown)
-    fig.subplots_adjust(right=0.76, hspace=0.15)
+    # margins in inches, not in shares of the figure: a tall figure (many devices) otherwise gets an inch of
+    # empty space under its title
+    fig.subplots_adjust(right=0.76, hspace=0.15, top=1 - 0.55 / height_in, bottom=0.55 / height_in)
     return _save(fig, path)
