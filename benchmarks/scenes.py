@@ -20,6 +20,11 @@ Scenes (``make_scenes``, 52 by default, seeded by ``--seed``):
   source at 10, 20 or 30 dB.
 - ``moving``: a talker walking around the table (0.4-0.9 m/s) with a noise source at 5-30 dB.
 
+``--rooms measured`` (``make_measured_scenes``, 48 scenes): the same kinds (no moving talker) in a real office,
+through the measured responses of ``audio/polimi-esticks-rir32`` (GPL-3.0, read from ``--data`` and never shipped):
+4-8 devices are microphones of its 0.93 m bar, the talkers and the noise source stand at its measured loudspeaker
+positions 0.3-0.9 m away, with the usual clocks. No parameter of the engine was tuned on them.
+
 Rooms: 4-8 x 3.5-7 x 2.5-3.2 m, Sabine RT60 0.2-0.6 s (image sources up to order 30; the report gives the
 measured RT60). Devices: start offsets 0-1.5 s, drifts -100..100 ppm, gains -4..2 dB, sensor noise -60..-70
 dBFS, one device at 44.1 or 48 kHz in half of the scenes.
@@ -191,6 +196,92 @@ def make_scenes(seed: int = 7) -> list[tuple[str, int, bf.Scene]]:
     return out
 
 
+# measured rooms (``--rooms measured``): the polimi eStick office responses (``audio/polimi-esticks-rir32``, GPL-3.0,
+# read from --data, never shipped): 32 microphones 3 cm apart on a 0.93 m bar, five loudspeaker positions 0.3-0.9 m
+# in front of it (x, y in metres, from its source_location.mat), all at one height; T60 about 40 ms
+MEASURED_RIRS = "audio/polimi-esticks-rir32"
+MEASURED_SOURCES = {1: (0.3311, 0.0863), 3: (0.3238, 0.7822), 5: (0.6231, 0.4419), 7: (0.9004, 0.0975),
+                    9: (0.8916, 0.7835)}
+MEASURED_Z = 1.5
+
+
+MEASURED_SEPARATION_S = 1e-3   # sources whose relative TOAs at the devices differ by less are not drawn together
+
+
+def _separation_s(devices_m, a_m, b_m) -> float:
+    """How far apart two sources are in relative TOA at these devices: the spread (max - min) over the devices of
+    the difference of their arrival times, seconds. Seen from a line of microphones, two sources at one
+    position along it (the bar's y) differ only by the wavefront's curvature: 0.7 ms over the whole bar for the
+    polimi positions 1 and 7, less over a few of its microphones. The simulated scenes keep the noise 1.2 m from
+    the talker for the same reason."""
+    d = np.asarray(devices_m, float)
+    ta = np.linalg.norm(d - np.asarray(a_m, float), axis=1) / 343.0
+    tb = np.linalg.norm(d - np.asarray(b_m, float), axis=1) / 343.0
+    return float(np.ptp(ta - tb))
+
+
+def make_measured_scenes(seed: int = 7) -> list[tuple[str, int, bf.Scene]]:
+    """``(kind, snr_db, scene)`` in the measured office (deterministic for a seed): 40 scenes with one talker and
+    one noise source (5 SNRs x 4 noise kinds x 2 draws) and 8 with two talkers taking turns, each at one of the
+    five measured positions, every two of them at least ``MEASURED_SEPARATION_S`` apart in relative TOA
+    (:func:`_separation_s`); 4-8 devices are microphones of the bar at least 9 cm apart, with the usual clocks."""
+    out = []
+    plans = [("noise", snr, noise) for snr in SNRS for noise in NOISES for _ in range(2)]
+    plans += [("two_talkers", snr, noise) for snr in (10, 20, 30) for noise in ("dishes", "pink", "white")][:8]
+    for idx, (kind, snr, noise) in enumerate(plans):
+        rng = np.random.default_rng([seed, 1000 + idx])
+        n_dev = int(rng.integers(4, 9))
+
+        def at(k):
+            return (*MEASURED_SOURCES[k], MEASURED_Z)
+
+        while True:
+            while True:
+                ch = np.sort(rng.choice(32, n_dev, replace=False))
+                if np.all(np.diff(ch) >= 3):
+                    break
+            ch = rng.permutation(ch)       # device 0, the reference, anywhere on the bar
+            pos = [(0.0, round(0.03 * int(c), 4), MEASURED_Z) for c in ch]
+            where = [int(k) for k in rng.permutation(sorted(MEASURED_SOURCES))]
+            used = where[:3 if kind == "two_talkers" else 2]
+            if all(_separation_s(pos, at(a), at(b)) >= MEASURED_SEPARATION_S
+                   for i, a in enumerate(used) for b in used[i + 1:]):
+                break
+
+        talker_pos, npos = at(where[0]), at(where[1])
+        speakers = list(rng.permutation(sorted(SPEAKERS)))
+        files_a = (SPEAKERS[speakers[0]] * 2)[:2]
+        talkers, starts0 = (), ()
+        if kind == "two_talkers":
+            lens_a = [_speech_len(f) for f in files_a]
+            files_b = (SPEAKERS[speakers[1]][:2] * 2)[:2]
+            lens_b = [_speech_len(f) for f in files_b]
+            t, starts_a, starts_b = 1.0, [], []
+            for k in range(2):
+                starts_a.append(round(t, 3))
+                t += lens_a[k] + rng.uniform(0.3, 0.6)
+                starts_b.append(round(t, 3))
+                t += lens_b[k] + rng.uniform(0.3, 0.6)
+            starts0 = tuple(starts_a)
+            talkers = (bf.TalkerSpec(bf.StaticPath(at(where[2])), files_b, tuple(starts_b)),)
+            duration = t + 0.3
+        else:
+            duration = SPEECH_START_S + sum(_speech_len(f) for f in files_a) + 0.3 * (len(files_a) - 1) + 0.5
+        name = f"m{idx:02d}_{kind}_bar_{noise}_{snr}dB"
+        scene = bf.Scene(
+            name=name, description=f"benchmark scene {name} (measured office responses)", sim_rate_hz=16000,
+            duration_s=round(min(duration, 16.0), 2), room_dims_m=(0.0, 0.0, 0.0), sabine_rt60_s=0.04,
+            max_order_cap=0, speech_files=files_a,
+            speech_start_s=1.0 if kind == "two_talkers" else SPEECH_START_S, speech_gap_s=0.3,
+            path=bf.StaticPath(talker_pos), devices=_devices(rng, n_dev, pos, other_rate=bool(idx % 2)),
+            noise=bf.NoiseSpec(NOISES[noise], float(rng.uniform(0, 30)) if noise == "dishes" else 0.0,
+                               npos, float(snr)),
+            block_hop_s=None, seed=20_000 + idx, speech_credit="", noise_credit="",
+            talkers=talkers, speech_starts_s=starts0, source_truth=True, measured_rirs=MEASURED_RIRS)
+        out.append((kind, snr, scene))
+    return out
+
+
 _LEN_CACHE: dict[str, float] = {}
 DATA: Path = REPO.parent / "shared" / "data"
 
@@ -256,6 +347,8 @@ def run_scene(args) -> dict:
     stamp = folder / "scene.repr"
     t0 = time.perf_counter()
     key = f"{repr(scene)}\ntruth {bf.TRUTH_VERSION}"
+    if scene.measured_rirs:
+        key += f"\nmeasured {scene.measured_rirs} {bf.MEASURED_VERSION}"
     if not (stamp.is_file() and stamp.read_text() == key):
         bf.build(scene, data, cache)
         stamp.write_text(key)
@@ -358,6 +451,9 @@ def main(argv=None) -> int:
     ap.add_argument("--estimators", default="tracks,kalman")
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--seed", type=int, default=7)
+    ap.add_argument("--rooms", choices=("simulated", "measured"), default="simulated",
+                    help="simulated rooms (pyroomacoustics), or the measured office responses of "
+                         f"{MEASURED_RIRS} (48 scenes; make_measured_scenes)")
     ap.add_argument("--only", default="", help="comma-separated scene kinds or name substrings")
     ap.add_argument("--limit", type=int, default=0, help="at most this many scenes")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
@@ -367,7 +463,7 @@ def main(argv=None) -> int:
     if not (DATA / "audio").is_dir():
         ap.error(f"--data {DATA} has no audio/ folder; pass the shared data dir")
     estimators = [e for e in args.estimators.split(",") if e]
-    scenes = make_scenes(args.seed)
+    scenes = make_scenes(args.seed) if args.rooms == "simulated" else make_measured_scenes(args.seed)
     if args.only:
         keys = args.only.split(",")
         scenes = [s for s in scenes if s[0] in keys or any(k in s[2].name for k in keys)]
@@ -417,7 +513,7 @@ def main(argv=None) -> int:
         print(f"{e}: issue 9's numbers: " + "; ".join(
             f"{k} {v['value']} (need {v['need']}{'' if 'scene' not in v else ', ' + v['scene']}): "
             f"{'met' if v['met'] else 'NOT met'}" for k, v in g.items()))
-    print(json.dumps({"benchmark": "scenes", "seed": args.seed, "n_scenes": len(rows), "overrides": overrides,
+    print(json.dumps({"benchmark": "scenes", "seed": args.seed, "rooms": args.rooms, "n_scenes": len(rows), "overrides": overrides,
                       "seconds": round(time.perf_counter() - t0, 1), "summary": summary, "targets": goals,
                       "gap_split": gaps,
                       "scenes": rows}, default=float))

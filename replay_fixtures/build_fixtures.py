@@ -127,6 +127,9 @@ class Scene:
     talkers: tuple = ()          # further TalkerSpec (talker 0 is path / speech_files above)
     speech_starts_s: tuple = ()  # talker 0's sentence start times (default: from speech_start_s, gap)
     source_truth: bool = False   # write truth/activity.csv and truth/toa_<source>.csv
+    # a measured RIR set (relative to the data dir) instead of the simulated room; out of repr, so that the cache
+    # keys of the simulated scenes stay what they were
+    measured_rirs: str = dataclasses.field(default="", repr=False)
 
 
 CMU = "audio/cmu-arctic-16k/"
@@ -415,6 +418,69 @@ def _rirs(scene: Scene, source_m, *, anechoic: bool) -> list[np.ndarray]:
     return [np.asarray(room.rir[m][0], float) for m in range(len(scene.devices))]
 
 
+MEASURED_VERSION = 2   # bump when _measured_rirs changes what it gives (benchmark caches rebuild)
+MEASURED_RIR_S = 0.1   # a measured response is cut here, faded over its last 20 ms: the polimi office's T60 is
+MEASURED_FADE_S = 0.02  # about 40 ms, and past that a measured response holds its measurement's noise floor
+
+
+MEASURED_WAVELET = (8, 17)   # the direct path's samples kept as the reference's filter: 0.5 ms before, 1 ms after
+
+
+def _measured_rirs(scene: Scene, data: Path, source_m, *, wavelet: bool = False) -> list[np.ndarray]:
+    """Measured responses from ``source_m`` to the scene's devices, at the simulation rate, with the time model's
+    fixed delay ``frac_delay_length // 2`` in front (as the simulated ones have it).
+
+    The set (``scene.measured_rirs``) is the polimi eStick recording layout (``PROVENANCE.md`` there): files
+    ``rir_source_<k>.wav`` (48 kHz, 32 channels), ``source_location.mat`` (the sources' x, y), microphone ``m``
+    (0-based) at ``(0, 0.03 m)``, the sources and microphones in one plane. A source or a device must sit on
+    one of the measured positions (within 1 cm), given with that plane's height as z. The microphone positions
+    were inferred from the data (to 1-2 cm), so each response is moved by a fraction of a millisecond (the peak of
+    its envelope in the first 10 ms at the simulation rate, to a fraction of a sample, put at the geometric
+    arrival): the scene's timing truth, computed from the positions, then holds to a fraction of a sample.
+
+    With ``wavelet``: a list of one array, the devices' direct paths averaged (each moved so that its arrival
+    is sample ``MEASURED_WAVELET[0]``, ``sum(MEASURED_WAVELET)`` samples). A measured response holds the
+    loudspeaker's and the microphones' own responses, which colour and shift the phase of every device alike;
+    the scene's clean reference is the dry talker through this filter (``Simulation.refs``), so that SI-SDR
+    scores what the devices add to the direct path (a simulated response's direct path is a delay)."""
+    import scipy.io
+    folder = data / scene.measured_rirs
+    xy = scipy.io.loadmat(folder / "source_location.mat")["sourceLocation"]
+    dist = np.hypot(xy[:, 0] - source_m[0], xy[:, 1] - source_m[1])
+    k = int(np.argmin(dist)) + 1
+    if dist[k - 1] > 0.01 or not (folder / f"rir_source_{k}.wav").is_file():
+        raise ValueError(f"no measured response from {tuple(source_m)} in {folder}")
+    h, rate = sf.read(folder / f"rir_source_{k}.wav", dtype="float64", always_2d=True)
+    fs = scene.sim_rate_hz
+    g = math.gcd(int(rate), fs)
+    c = float(pra.constants.get("c"))
+    delay = pra.constants.get("frac_delay_length") // 2
+    n = int(MEASURED_RIR_S * fs)
+    fade = np.ones(n)
+    n_fade = int(MEASURED_FADE_S * fs)
+    fade[n - n_fade:] = 0.5 * (1 + np.cos(np.pi * np.arange(n_fade) / n_fade))
+    n_fft = 2 * n
+    f = np.fft.rfftfreq(n_fft)
+    out = []
+    for dev in scene.devices:
+        ch = int(round(dev.position_m[1] / 0.03))
+        if abs(dev.position_m[0]) > 0.01 or abs(dev.position_m[1] - 0.03 * ch) > 0.01 or not 0 <= ch < h.shape[1]:
+            raise ValueError(f"device {dev.name} at {dev.position_m} is not a measured microphone of {folder}")
+        x = scipy.signal.resample_poly(h[:, ch], fs // g, int(rate) // g)[:n] * fade
+        a = np.abs(scipy.signal.hilbert(x[:int(0.01 * fs)]))   # the arrival as a band-limited GCC sees it
+        i = int(np.argmax(a[1:-1])) + 1
+        den = a[i - 1] - 2 * a[i] + a[i + 1]
+        peak = i + (0.5 * (a[i - 1] - a[i + 1]) / den if den else 0.0)
+        shift = math.dist(dev.position_m, source_m) / c * fs - peak + delay   # to the geometric arrival + delay
+        if wavelet:
+            shift = MEASURED_WAVELET[0] - peak
+        x = np.fft.irfft(np.fft.rfft(x, n_fft) * np.exp(-2j * np.pi * f * shift), n_fft)[:n + delay + 1]
+        out.append(x)
+    if wavelet:
+        return [np.mean([x[:sum(MEASURED_WAVELET)] for x in out], axis=0)]
+    return out
+
+
 def _convolve_static(sig: np.ndarray, rirs: list[np.ndarray], n_out: int) -> np.ndarray:
     out = np.zeros((len(rirs), n_out))
     for m, h in enumerate(rirs):
@@ -557,6 +623,7 @@ class Simulation:
     measured_rt60_s: float  # median over microphones (Schroeder, pra.experimental.measure_rt60)
     parts: list = dataclasses.field(default_factory=list)  # per talker (M, n) components (sum = talker)
     drys: list = dataclasses.field(default_factory=list)   # per talker dry signals
+    refs: list = dataclasses.field(default_factory=list)   # per talker clean reference (default: the dry signal)
 
 
 def simulate(scene: Scene, data: Path, *, anechoic: bool = False) -> Simulation:
@@ -564,9 +631,18 @@ def simulate(scene: Scene, data: Path, *, anechoic: bool = False) -> Simulation:
     t_end = max(d.start_offset_s + scene.duration_s / (1 + d.drift_ppm * 1e-6) for d in scene.devices)
     n_sync = int(math.ceil(t_end * fs)) + 2 * HALF_TAPS + 16
     dry = _dry_speech(scene, data, n_sync)
-    _, e_abs, max_order = _room(scene, anechoic=anechoic)
+    if scene.measured_rirs:
+        if anechoic or scene.block_hop_s is not None:
+            raise ValueError("a measured room has no anechoic version and no moving talker")
+        e_abs, max_order = 0.0, 0
+
+        def rirs(scene, source_m, *, anechoic):
+            return _measured_rirs(scene, data, source_m)
+    else:
+        _, e_abs, max_order = _room(scene, anechoic=anechoic)
+        rirs = _rirs
     if scene.block_hop_s is None:
-        talker = _convolve_static(dry, _rirs(scene, scene.path(0.0)[0], anechoic=anechoic), n_sync)
+        talker = _convolve_static(dry, rirs(scene, scene.path(0.0)[0], anechoic=anechoic), n_sync)
         n_sets = 1
     else:
         talker = _convolve_moving(scene, dry, n_sync, anechoic=anechoic)
@@ -574,19 +650,25 @@ def simulate(scene: Scene, data: Path, *, anechoic: bool = False) -> Simulation:
     parts, drys = [talker], [dry]
     for j, spec in enumerate(scene.talkers, start=1):
         d = _dry_speech(scene, data, n_sync, talker=j)
-        parts.append(_convolve_static(d, _rirs(scene, spec.path(0.0)[0], anechoic=anechoic), n_sync))
+        parts.append(_convolve_static(d, rirs(scene, spec.path(0.0)[0], anechoic=anechoic), n_sync))
         drys.append(d)
     if len(parts) > 1:
         talker = np.sum(parts, axis=0)
     noise = np.zeros_like(talker)
     if scene.noise is not None:
         noise = _convolve_static(_noise_signal(scene, data, n_sync),
-                                 _rirs(scene, scene.noise.position_m, anechoic=anechoic), n_sync)
+                                 rirs(scene, scene.noise.position_m, anechoic=anechoic), n_sync)
     rt60 = float("nan")
     if not anechoic:
         rt60 = float(np.median([pra.experimental.measure_rt60(h, fs=fs)
-                                for h in _rirs(scene, scene.path(0.0)[0], anechoic=False)]))
-    return Simulation(talker, noise, dry, float(e_abs), int(max_order), n_sets, rt60, parts, drys)
+                                for h in rirs(scene, scene.path(0.0)[0], anechoic=False)]))
+    refs = list(drys)
+    if scene.measured_rirs:   # the dry talker through the direct path's filter, its arrival kept in place
+        k0 = MEASURED_WAVELET[0]
+        for j, path in enumerate([scene.path] + [t.path for t in scene.talkers]):
+            w = _measured_rirs(scene, data, path(0.0)[0], wavelet=True)[0]
+            refs[j] = np.convolve(drys[j], w)[k0:k0 + len(drys[j])]
+    return Simulation(talker, noise, dry, float(e_abs), int(max_order), n_sets, rt60, parts, drys, refs)
 
 
 def _device_positions(scene: Scene, dev: DeviceSpec) -> np.ndarray:
@@ -717,7 +799,7 @@ def build(scene: Scene, data: Path, out_root: Path) -> dict:
     def aligned_clean(t_true, rate_hz):
         # s_j at the emission time of the wavefront reaching mic 0 at t_true, summed over talkers
         out = 0.0
-        for path, dry in zip(paths, sim.drys):
+        for path, dry in zip(paths, sim.refs):
             tau = emission_time(scene, t_true, mics[0], c, path)
             out = out + band_limited_at(dry, tau * fs - delay, cutoff=CUTOFF * min(1.0, rate_hz / fs))
         return out
