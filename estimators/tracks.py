@@ -57,9 +57,7 @@ N best GCC-PHAT peaks of every pair (:class:`estimators.multipeak.NoiseAwareGcc`
   beam onto itself one device at a time.
 - **Take-over** (``"active-talker"``): a talker track confirmed within ``TAKEOVER_S`` (every device) of the
   steered track is the steered talker where it is now (a walking talker outruns a track's capped gate); the
-  steered track takes its state and the beam follows at once (``n_taken_over`` in the report). Not while the
-  steered track still hears its own source where the two differ (``TAKEOVER_APART_S``): that is a second source
-  beside the talker, as a small array sees a babble or a clatter 0.3-0.9 m away.
+  steered track takes its state and the beam follows at once (``n_taken_over`` in the report).
 - **Ghosts**: two talker tracks hit in the same speech frames (over the last half second) are one talker; the
   weaker of the two in those frames (matched peak heights summed over the pairs) is a side lobe of its voice
   (GCC-PHAT of voiced speech peaks again near multiples of the pitch period) or a reflection, and is removed
@@ -105,7 +103,6 @@ MAX_DRIFT_RATE_S_PER_S = 2.5e-4   # relative TOA rate two clocks at +-100 ppm (a
 TargetPolicy = Literal["active-talker", "nearest"]
 NOISE_SAME_S = 2.5e-4            # a talker track this close to a noise source found in the pauses (every device) is it
 TAKEOVER_S = 1e-3                 # a new talker track this close to the steered one (every device) is its talker
-TAKEOVER_APART_S = 2.5e-4         # ... unless the steered one still takes peaks where the two differ by more
 QUIET_S = 0.048                   # the steered talker unheard for this long (speech frames): another may take the turn
 FAST_ACTIVITY_S = 0.1             # ... the one most active over about this long (speech frames)
 LOUDER_MIN_HITS = 15              # hits in speech frames and in the pauses before ``louder_ratio`` is applied,
@@ -303,7 +300,6 @@ class Track:
     activity: float = 0.0            # EMA over speech frames of the matched peak heights summed over the pairs,
     #                                  divided by the usable pairs (0 without a hit)
     hit_now: bool = False            # hit in the last speech frame
-    took_now: np.ndarray | None = field(default=None, repr=False)   # (n_pairs,) bool: the pairs that hit took
     hit_value: float = 0.0           # and its matched peak heights summed over the pairs / usable pairs
     miss_run: int = 0                # speech frames since its last hit
     fast_activity: float = 0.0       # as ``activity``, over FAST_ACTIVITY_S
@@ -742,7 +738,6 @@ class SourceTracker:
                 self._relabel(t)
             hit_any |= hit and t.kind != "noise"
             t.hit_now = hit
-            t.took_now = took.copy() if hit else None
             t.hit_value = value if hit else 0.0
         self._ghosts(time_s)
         if self.target == "active-talker":
@@ -823,32 +818,18 @@ class SourceTracker:
         """A talker track confirmed in this frame within ``TAKEOVER_S`` of the steered track on every device is
         the steered talker where it is now (a walking talker outruns a track's capped gate, and a new track is
         born from the peaks the old one no longer reaches): the steered track takes the new one's state, and
-        the beam follows without waiting for the new track to become the more active (``n_taken_over``).
-        Not a track the steered one is still heard apart from (:meth:`_heard_apart`)."""
+        the beam follows without waiting for the new track to become the more active (``n_taken_over``)."""
         st = self.steered
         if st is None or st.kind != "speech":
             return
         for t in self.tracks:
             if t is not st and t.kind == "speech" and t.confirmed_s == time_s \
-                    and self._gap(t.toa_s, st.toa_s) <= TAKEOVER_S and not self._heard_apart(st, t):
+                    and self._gap(t.toa_s, st.toa_s) <= TAKEOVER_S:
                 st.take_filter(t)
                 st.last_hit_s = time_s
                 self.n_taken_over += 1
                 self._end(t, time_s, f"taken over by the steered track {st.track_id} (its talker, moved)")
                 return
-
-    def _heard_apart(self, st: Track, t: Track) -> bool:
-        """Whether the steered track ``st`` still hears its own source apart from the new track ``t``: in this
-        frame it took peaks on at least half (and two) of the pairs whose TDOAs differ between the two by more
-        than ``TAKEOVER_APART_S``. A talker who moved leaves no peaks at the old TDOAs there (only the pairs the
-        move did not change still hit the old track); a second source beside the steered one leaves both. In the
-        measured room (``benchmarks/scenes.py --rooms measured``) a babble or a dish clatter 0.3-0.9 m from the
-        talker is within ``TAKEOVER_S`` of her on every device of the 0.93 m bar, and its new tracks took the beam
-        over (seed 7's ``m43``: 5-9 dB lost over 2 s)."""
-        if not st.hit_now or st.took_now is None:
-            return False
-        apart = np.abs(self._H0 @ (t.toa_s[1:] - st.toa_s[1:])) > TAKEOVER_APART_S
-        return bool(apart.any()) and int(st.took_now[apart].sum()) >= max(2, 0.5 * int(apart.sum()))
 
     def _ghosts(self, time_s: float) -> None:
         """Two talker tracks heard in the same speech frames (over the last half second) are one talker: the
