@@ -108,6 +108,20 @@ def _far_enough(p, others, d):
     return all(math.dist(p, q) >= d for q in others)
 
 
+def _turns(files_a, files_b, rng) -> tuple[list, list, float]:
+    """Two talkers' turns from 1 s on, A then B, twice, each sentence followed by 0.3-0.6 s: the start times of A's
+    and B's sentences and the end of the last turn (seconds)."""
+    lens_a = [_speech_len(f) for f in files_a]
+    lens_b = [_speech_len(f) for f in files_b]
+    t, starts_a, starts_b = 1.0, [], []
+    for k in range(2):
+        starts_a.append(round(t, 3))
+        t += lens_a[k] + rng.uniform(0.3, 0.6)
+        starts_b.append(round(t, 3))
+        t += lens_b[k] + rng.uniform(0.3, 0.6)
+    return starts_a, starts_b, t
+
+
 def make_scenes(seed: int = 7) -> list[tuple[str, int, bf.Scene]]:
     """``(kind, snr_db, scene)`` for every benchmark scene (deterministic for a seed)."""
     out = []
@@ -161,15 +175,8 @@ def make_scenes(seed: int = 7) -> list[tuple[str, int, bf.Scene]]:
                 if math.dist(pos_b, talker_pos) > 1.2 and _far_enough(npos, [pos_b], 1.2):
                     break
             files_a = (files_a * 2)[:2]     # a VCTK voice has one sentence: it says it twice
-            lens_a = [_speech_len(f) for f in files_a]
             files_b = (SPEAKERS[spk_b][:2] * 2)[:2]
-            lens_b = [_speech_len(f) for f in files_b]
-            t, starts_a, starts_b = 1.0, [], []
-            for k in range(2):
-                starts_a.append(round(t, 3))
-                t += lens_a[k] + rng.uniform(0.3, 0.6)
-                starts_b.append(round(t, 3))
-                t += lens_b[k] + rng.uniform(0.3, 0.6)
+            starts_a, starts_b, t = _turns(files_a, files_b, rng)
             starts0 = tuple(starts_a)
             talkers = (bf.TalkerSpec(bf.StaticPath(pos_b), files_b, tuple(starts_b)),)
             duration = t + 0.3
@@ -253,15 +260,8 @@ def make_measured_scenes(seed: int = 7) -> list[tuple[str, int, bf.Scene]]:
         files_a = (SPEAKERS[speakers[0]] * 2)[:2]
         talkers, starts0 = (), ()
         if kind == "two_talkers":
-            lens_a = [_speech_len(f) for f in files_a]
             files_b = (SPEAKERS[speakers[1]][:2] * 2)[:2]
-            lens_b = [_speech_len(f) for f in files_b]
-            t, starts_a, starts_b = 1.0, [], []
-            for k in range(2):
-                starts_a.append(round(t, 3))
-                t += lens_a[k] + rng.uniform(0.3, 0.6)
-                starts_b.append(round(t, 3))
-                t += lens_b[k] + rng.uniform(0.3, 0.6)
+            starts_a, starts_b, t = _turns(files_a, files_b, rng)
             starts0 = tuple(starts_a)
             talkers = (bf.TalkerSpec(bf.StaticPath(at(where[2])), files_b, tuple(starts_b)),)
             duration = t + 0.3
