@@ -42,6 +42,9 @@ Figures per scene and estimator:
   within 0.25 ms of the noise source's TOA); ``noise_steer_but_one_s`` also counts the frames where every
   device but one is (:func:`estimators.within_but_one`; from five devices on): a beam on the noise with one
   device on another peak of it, which the issue's every-device figure does not count;
+- ``speech_false_alarm``: fraction of the frames more than ``SPEECH_TAIL_S`` (0.3 s) from any talker's speech that
+  the speech detector calls speech (probability >= 0.5), ``speech_recall``: fraction of the talkers' speech frames
+  it calls speech (:func:`speech_detector_figures`; the tracker labels its tracks by the detector);
 - two talkers: ``turn_latency_s`` per turn change, the time until the steered TOA is within 0.25 ms of the new
   talker for 5 consecutive frames (the turn's length if never).
 
@@ -84,6 +87,7 @@ WITHIN_S = 2.5e-4
 SPEECH_START_S = 2.0        # the noise plays alone before this
 SETTLE_S = 2.0              # TOA accuracy counts from this long after the first speech
 HOLD_FRAMES = 5             # turn latency: frames on the new talker in a row
+SPEECH_TAIL_S = 0.3         # speech_false_alarm leaves out this long after any speech (the detector's hold)
 
 
 # ----------------------------------------------------------------------------- scene design
@@ -293,6 +297,22 @@ def _speech_len(f: str) -> float:
 
 
 # ----------------------------------------------------------------------------- scoring
+def speech_detector_figures(speech_probability, speaking, hop_s: float) -> dict:
+    """The speech detector against the talkers' truth, per frame: ``speech_probability`` (n_frames,) and
+    ``speaking`` (n_frames, n_talkers) bool. ``speech_false_alarm``: the share of the frames more than
+    ``SPEECH_TAIL_S`` after any talker's speech (and before the next) called speech (probability >= 0.5);
+    ``speech_recall``: the share of the frames where a talker speaks called speech. NaN where there is no such
+    frame."""
+    p = np.asarray(speech_probability, float)
+    anyone = np.asarray(speaking, bool).reshape(len(p), -1).any(axis=1)
+    k = max(1, int(round(SPEECH_TAIL_S / hop_s)))
+    tail = np.convolve(anyone.astype(float), np.ones(k + 1))[:len(p)] > 0   # a frame of speech and the k after it
+    silent = ~tail
+    called = p >= 0.5
+    return {"speech_false_alarm": float(called[silent].mean()) if silent.any() else float("nan"),
+            "speech_recall": float(called[anyone].mean()) if anyone.any() else float("nan")}
+
+
 def _steer_figures(pipeline, fixture) -> dict:
     """TOA accuracy, noise steering and turn latency of a finished run (module doc)."""
     time_s, toa_s, _ = pipeline.toa_track()
@@ -313,6 +333,9 @@ def _steer_figures(pipeline, fixture) -> dict:
     scored = talking & (time_s >= first + SETTLE_S)
     out = {"toa_within_0p25ms": float(np.mean(on_active[scored])) if scored.any() else float("nan"),
            "no_beam_speech_s": float(np.sum(no_beam & speaking.any(axis=1)) * hop_s)}
+    probability = np.asarray([np.nan if v is None else v for v in pipeline.state.speech_probability], float)
+    if len(probability) == len(time_s) and np.isfinite(probability).all():   # an estimator with a speech detector
+        out.update(speech_detector_figures(probability, speaking, hop_s))
     if noise:
         truth = fixture.source_toa_at(noise[0].name, time_s)
         d_n = (toa_s - toa_s[:, :1]) - (truth - truth[:, :1])
@@ -391,6 +414,10 @@ def summarise(rows: list[dict], estimators: list[str]) -> dict:
                     "max_noise_steer_s": max(x.get("noise_steer_s", 0.0) for x in f),
                     "max_noise_steer_but_one_s": max(x.get("noise_steer_but_one_s", 0.0) for x in f),
                 }
+                for key in ("speech_false_alarm", "speech_recall"):
+                    v = [x[key] for x in f if key in x and math.isfinite(x[key])]
+                    if v:
+                        s[key] = np.median(v)
                 lat = [v for x in f for v in x.get("turn_latency_s", [])]
                 if lat:
                     s["turn_latency_median_s"] = float(np.median(lat))

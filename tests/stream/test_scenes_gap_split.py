@@ -4,6 +4,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
@@ -29,3 +30,24 @@ def test_the_distance_to_the_oracle_splits_into_steering_and_input_over_the_scen
 
 def test_no_scene_with_a_true_toa_figure_gives_no_split():
     assert gap_split([_row(0, 1.0, 2.0, 2.5), _row(5, 1.0, float("nan"), 2.0)], "tracks") == {}
+
+
+def test_the_speech_detector_figures_leave_out_its_hold_after_speech():
+    from scenes import SPEECH_TAIL_S, speech_detector_figures
+    hop_s = 0.016
+    n = 200
+    speaking = np.zeros((n, 2), bool)
+    speaking[20:60, 0] = True                     # talker 0, then talker 1
+    speaking[120:150, 1] = True
+    p = np.zeros(n)
+    p[20:50] = 0.9                                # 30 of 70 speech frames called speech
+    p[130:150] = 0.9
+    k = int(round(SPEECH_TAIL_S / hop_s))
+    p[60:60 + k] = 0.9                            # the hold after talker 0: not a false alarm
+    p[100:110] = 0.7                              # 10 false alarms
+    silent = n - 70 - 2 * k                       # frames neither speech nor within the hold after it
+    f = speech_detector_figures(p, speaking, hop_s)
+    assert f["speech_recall"] == pytest.approx(50 / 70)
+    assert f["speech_false_alarm"] == pytest.approx(10 / silent)
+    none = speech_detector_figures(np.zeros(10), np.zeros((10, 1), bool), hop_s)
+    assert np.isnan(none["speech_recall"]) and none["speech_false_alarm"] == 0.0
