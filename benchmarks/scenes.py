@@ -42,8 +42,8 @@ Figures per scene and estimator:
   within 0.25 ms of the noise source's TOA); ``noise_steer_but_one_s`` also counts the frames where every
   device but one is (:func:`estimators.within_but_one`; from five devices on): a beam on the noise with one
   device on another peak of it, which the issue's every-device figure does not count;
-- ``speech_false_alarm``: fraction of the frames more than ``SPEECH_TAIL_S`` (0.3 s) from any talker's speech that
-  the speech detector calls speech (probability >= 0.5), ``speech_recall``: fraction of the talkers' speech frames
+- ``speech_false_alarm``: fraction of the frames where nobody talks (the ``SPEECH_TAIL_S`` = 0.3 s after any talker's
+  speech left out) that the speech detector calls speech (probability >= 0.5), ``speech_recall``: fraction of the talkers' speech frames
   it calls speech (:func:`speech_detector_figures`; the tracker labels its tracks by the detector);
 - two talkers: ``turn_latency_s`` per turn change, the time until the steered TOA is within 0.25 ms of the new
   talker for 5 consecutive frames (the turn's length if never).
@@ -299,8 +299,8 @@ def _speech_len(f: str) -> float:
 # ----------------------------------------------------------------------------- scoring
 def speech_detector_figures(speech_probability, speaking, hop_s: float) -> dict:
     """The speech detector against the talkers' truth, per frame: ``speech_probability`` (n_frames,) and
-    ``speaking`` (n_frames, n_talkers) bool. ``speech_false_alarm``: the share of the frames more than
-    ``SPEECH_TAIL_S`` after any talker's speech (and before the next) called speech (probability >= 0.5);
+    ``speaking`` (n_frames, n_talkers) bool. ``speech_false_alarm``: the share of the frames where nobody talks,
+    the ``SPEECH_TAIL_S`` after any talker's speech left out (the detector's hold), called speech (probability >= 0.5);
     ``speech_recall``: the share of the frames where a talker speaks called speech. NaN where there is no such
     frame."""
     p = np.asarray(speech_probability, float)

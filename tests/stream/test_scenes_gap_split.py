@@ -1,4 +1,5 @@
-"""``benchmarks/scenes.py``'s split of the distance to the oracle into steering and the engine's input."""
+"""``benchmarks/scenes.py``'s summaries: the split of the distance to the oracle into steering and the engine's input,
+and the speech detector against the truth."""
 from __future__ import annotations
 
 import sys
@@ -40,7 +41,7 @@ def test_the_speech_detector_figures_leave_out_its_hold_after_speech():
     speaking[20:60, 0] = True                     # talker 0, then talker 1
     speaking[120:150, 1] = True
     p = np.zeros(n)
-    p[20:50] = 0.9                                # 30 of 70 speech frames called speech
+    p[20:50] = 0.9                                # 50 of the 70 speech frames called speech
     p[130:150] = 0.9
     k = int(round(SPEECH_TAIL_S / hop_s))
     p[60:60 + k] = 0.9                            # the hold after talker 0: not a false alarm
