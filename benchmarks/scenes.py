@@ -71,7 +71,7 @@ sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "replay_fixtures"))
 
 import build_fixtures as bf  # noqa: E402
-from estimators import within_but_one  # noqa: E402
+from estimators import SPEED_OF_SOUND_M_S, within_but_one  # noqa: E402
 
 SNRS = (0, 5, 10, 20, 30)
 NOISES = {"dishes": "audio/speechcommands-noise/doing_the_dishes.wav", "white": "generated:white",
@@ -214,8 +214,6 @@ MEASURED_RIRS = "audio/polimi-esticks-rir32"
 MEASURED_SOURCES = {1: (0.3311, 0.0863), 3: (0.3238, 0.7822), 5: (0.6231, 0.4419), 7: (0.9004, 0.0975),
                     9: (0.8916, 0.7835)}
 MEASURED_Z = 1.5
-
-
 MEASURED_SEPARATION_S = 1e-3   # sources whose relative TOAs at the devices differ by less are not drawn together
 
 
@@ -226,9 +224,14 @@ def _separation_s(devices_m, a_m, b_m) -> float:
     polimi positions 1 and 7, less over a few of its microphones. The simulated scenes keep the noise 1.2 m from
     the talker for the same reason."""
     d = np.asarray(devices_m, float)
-    ta = np.linalg.norm(d - np.asarray(a_m, float), axis=1) / 343.0
-    tb = np.linalg.norm(d - np.asarray(b_m, float), axis=1) / 343.0
+    ta = np.linalg.norm(d - np.asarray(a_m, float), axis=1) / SPEED_OF_SOUND_M_S
+    tb = np.linalg.norm(d - np.asarray(b_m, float), axis=1) / SPEED_OF_SOUND_M_S
     return float(np.ptp(ta - tb))
+
+
+def _at(k: int) -> tuple[float, float, float]:
+    """Measured loudspeaker position ``k`` (metres)."""
+    return (*MEASURED_SOURCES[k], MEASURED_Z)
 
 
 def make_measured_scenes(seed: int = 7) -> list[tuple[str, int, bf.Scene]]:
@@ -242,10 +245,6 @@ def make_measured_scenes(seed: int = 7) -> list[tuple[str, int, bf.Scene]]:
     for idx, (kind, snr, noise) in enumerate(plans):
         rng = np.random.default_rng([seed, 1000 + idx])
         n_dev = int(rng.integers(4, 9))
-
-        def at(k):
-            return (*MEASURED_SOURCES[k], MEASURED_Z)
-
         while True:
             while True:
                 ch = np.sort(rng.choice(32, n_dev, replace=False))
@@ -255,11 +254,11 @@ def make_measured_scenes(seed: int = 7) -> list[tuple[str, int, bf.Scene]]:
             pos = [(0.0, round(0.03 * int(c), 4), MEASURED_Z) for c in ch]
             where = [int(k) for k in rng.permutation(sorted(MEASURED_SOURCES))]
             used = where[:3 if kind == "two_talkers" else 2]
-            if all(_separation_s(pos, at(a), at(b)) >= MEASURED_SEPARATION_S
+            if all(_separation_s(pos, _at(a), _at(b)) >= MEASURED_SEPARATION_S
                    for i, a in enumerate(used) for b in used[i + 1:]):
                 break
 
-        talker_pos, npos = at(where[0]), at(where[1])
+        talker_pos, npos = _at(where[0]), _at(where[1])
         speakers = list(rng.permutation(sorted(SPEAKERS)))
         files_a = (SPEAKERS[speakers[0]] * 2)[:2]
         talkers, starts0 = (), ()
@@ -267,7 +266,7 @@ def make_measured_scenes(seed: int = 7) -> list[tuple[str, int, bf.Scene]]:
             files_b = (SPEAKERS[speakers[1]][:2] * 2)[:2]
             starts_a, starts_b, t = _turns(files_a, files_b, rng)
             starts0 = tuple(starts_a)
-            talkers = (bf.TalkerSpec(bf.StaticPath(at(where[2])), files_b, tuple(starts_b)),)
+            talkers = (bf.TalkerSpec(bf.StaticPath(_at(where[2])), files_b, tuple(starts_b)),)
             duration = t + 0.3
         else:
             duration = SPEECH_START_S + sum(_speech_len(f) for f in files_a) + 0.3 * (len(files_a) - 1) + 0.5

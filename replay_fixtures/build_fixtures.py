@@ -427,7 +427,39 @@ MEASURED_FADE_S = 0.02
 MEASURED_WAVELET = (8, 17)   # the direct path's samples kept as the reference's filter: 0.5 ms before, 1 ms after
 
 
-def _measured_rirs(scene: Scene, data: Path, source_m, *, wavelet: bool = False) -> list[np.ndarray]:
+def _measured_responses(scene: Scene, data: Path, source_m) -> list[tuple[np.ndarray, float]]:
+    """Per device, the measured response from ``source_m`` at the simulation rate, cut and faded
+    (``MEASURED_RIR_S``, ``MEASURED_FADE_S``), and the sample of its arrival (the peak of its envelope in the first
+    10 ms, to a fraction of a sample). The layout and its checks: :func:`_measured_rirs`."""
+    import scipy.io
+    folder = data / scene.measured_rirs
+    xy = scipy.io.loadmat(folder / "source_location.mat")["sourceLocation"]
+    dist = np.hypot(xy[:, 0] - source_m[0], xy[:, 1] - source_m[1])
+    k = int(np.argmin(dist)) + 1
+    if dist[k - 1] > 0.01 or not (folder / f"rir_source_{k}.wav").is_file():
+        raise ValueError(f"no measured response from {tuple(source_m)} in {folder}")
+    h, rate = sf.read(folder / f"rir_source_{k}.wav", dtype="float64", always_2d=True)
+    fs = scene.sim_rate_hz
+    g = math.gcd(int(rate), fs)
+    n = int(MEASURED_RIR_S * fs)
+    fade = np.ones(n)
+    n_fade = int(MEASURED_FADE_S * fs)
+    fade[n - n_fade:] = 0.5 * (1 + np.cos(np.pi * np.arange(n_fade) / n_fade))
+    out = []
+    for dev in scene.devices:
+        ch = int(round(dev.position_m[1] / 0.03))
+        if abs(dev.position_m[0]) > 0.01 or abs(dev.position_m[1] - 0.03 * ch) > 0.01 or not 0 <= ch < h.shape[1]:
+            raise ValueError(f"device {dev.name} at {dev.position_m} is not a measured microphone of {folder}")
+        x = scipy.signal.resample_poly(h[:, ch], fs // g, int(rate) // g)[:n] * fade
+        a = np.abs(scipy.signal.hilbert(x[:int(0.01 * fs)]))   # the arrival as a band-limited GCC sees it
+        i = int(np.argmax(a[1:-1])) + 1
+        den = a[i - 1] - 2 * a[i] + a[i + 1]
+        out.append((x, i + (0.5 * (a[i - 1] - a[i + 1]) / den if den else 0.0)))
+    return out
+
+
+def _measured_rirs(scene: Scene, data: Path, source_m, *, wavelet: bool = False,
+                   responses: list[tuple[np.ndarray, float]] | None = None) -> list[np.ndarray]:
     """Measured responses from ``source_m`` to the scene's devices, at the simulation rate, with the time model's
     fixed delay ``frac_delay_length // 2`` in front (as the simulated ones have it).
 
@@ -443,35 +475,19 @@ def _measured_rirs(scene: Scene, data: Path, source_m, *, wavelet: bool = False)
     is sample ``MEASURED_WAVELET[0]``, ``sum(MEASURED_WAVELET)`` samples). A measured response holds the
     loudspeaker's and the microphones' own responses, which colour and shift the phase of every device alike;
     the scene's clean reference is the dry talker through this filter (``Simulation.refs``), so that SI-SDR
-    scores what the devices add to the direct path (a simulated response's direct path is a delay)."""
-    import scipy.io
-    folder = data / scene.measured_rirs
-    xy = scipy.io.loadmat(folder / "source_location.mat")["sourceLocation"]
-    dist = np.hypot(xy[:, 0] - source_m[0], xy[:, 1] - source_m[1])
-    k = int(np.argmin(dist)) + 1
-    if dist[k - 1] > 0.01 or not (folder / f"rir_source_{k}.wav").is_file():
-        raise ValueError(f"no measured response from {tuple(source_m)} in {folder}")
-    h, rate = sf.read(folder / f"rir_source_{k}.wav", dtype="float64", always_2d=True)
+    scores what the devices add to the direct path (a simulated response's direct path is a delay).
+
+    ``responses``: :func:`_measured_responses` of this source, when the caller has them already."""
+    if responses is None:
+        responses = _measured_responses(scene, data, source_m)
     fs = scene.sim_rate_hz
-    g = math.gcd(int(rate), fs)
     c = float(pra.constants.get("c"))
     delay = pra.constants.get("frac_delay_length") // 2
     n = int(MEASURED_RIR_S * fs)
-    fade = np.ones(n)
-    n_fade = int(MEASURED_FADE_S * fs)
-    fade[n - n_fade:] = 0.5 * (1 + np.cos(np.pi * np.arange(n_fade) / n_fade))
     n_fft = 2 * n
     f = np.fft.rfftfreq(n_fft)
     out = []
-    for dev in scene.devices:
-        ch = int(round(dev.position_m[1] / 0.03))
-        if abs(dev.position_m[0]) > 0.01 or abs(dev.position_m[1] - 0.03 * ch) > 0.01 or not 0 <= ch < h.shape[1]:
-            raise ValueError(f"device {dev.name} at {dev.position_m} is not a measured microphone of {folder}")
-        x = scipy.signal.resample_poly(h[:, ch], fs // g, int(rate) // g)[:n] * fade
-        a = np.abs(scipy.signal.hilbert(x[:int(0.01 * fs)]))   # the arrival as a band-limited GCC sees it
-        i = int(np.argmax(a[1:-1])) + 1
-        den = a[i - 1] - 2 * a[i] + a[i + 1]
-        peak = i + (0.5 * (a[i - 1] - a[i + 1]) / den if den else 0.0)
+    for dev, (x, peak) in zip(scene.devices, responses):
         shift = math.dist(dev.position_m, source_m) / c * fs - peak + delay   # to the geometric arrival + delay
         if wavelet:
             shift = MEASURED_WAVELET[0] - peak
@@ -636,9 +652,16 @@ def simulate(scene: Scene, data: Path, *, anechoic: bool = False) -> Simulation:
         if anechoic or scene.block_hop_s is not None:
             raise ValueError("a measured room has no anechoic version and no moving talker")
         e_abs, max_order = 0.0, 0
+        loaded: dict[tuple, list] = {}   # each source's file is read and resampled once (response, rt60, reference)
+
+        def measured(source_m):
+            key = tuple(source_m)
+            if key not in loaded:
+                loaded[key] = _measured_responses(scene, data, source_m)
+            return loaded[key]
 
         def rirs(scene, source_m, *, anechoic):
-            return _measured_rirs(scene, data, source_m)
+            return _measured_rirs(scene, data, source_m, responses=measured(source_m))
     else:
         _, e_abs, max_order = _room(scene, anechoic=anechoic)
         rirs = _rirs
@@ -667,7 +690,7 @@ def simulate(scene: Scene, data: Path, *, anechoic: bool = False) -> Simulation:
     if scene.measured_rirs:   # the dry talker through the direct path's filter, its arrival kept in place
         k0 = MEASURED_WAVELET[0]
         for j, path in enumerate([scene.path] + [t.path for t in scene.talkers]):
-            w = _measured_rirs(scene, data, path(0.0)[0], wavelet=True)[0]
+            w = _measured_rirs(scene, data, path(0.0)[0], wavelet=True, responses=measured(path(0.0)[0]))[0]
             refs[j] = np.convolve(drys[j], w)[k0:k0 + len(drys[j])]
     return Simulation(talker, noise, dry, float(e_abs), int(max_order), n_sets, rt60, parts, drys, refs)
 
