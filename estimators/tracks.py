@@ -132,9 +132,9 @@ def _anchor_vote(votes, peak_tdoa, peak_value, pred, pair_ok, pair_idx, decay, i
     pair (i, j) at ``pred + d`` votes, with its height, for moving device i by ``d`` and device j by ``-d``; not
     for a move when it lies within ``noise_tol`` of a noise source's TDOA in that pair (``noise_lag`` (pairs, K),
     NaN for none): that peak is the noise's (a vote for staying still counts).
-    Returns (device, bin) of the move with the most votes among the devices whose best bin beyond
-    ``gate_bins`` of the centre has more than ``ratio`` times the votes of the three centre bins and more than
-    ``min_votes``; (-1, -1) when no device qualifies."""
+    Returns (device, bin) of the move with the most votes among the devices whose best three neighbouring bins
+    centred beyond ``gate_bins`` of the centre have more than ``ratio`` times the votes of the three centre bins
+    and more than ``min_votes``; (-1, -1) when no device qualifies."""
     n_dev, n_bins = votes.shape
     c = n_bins // 2
     for i in range(n_dev):
@@ -159,11 +159,14 @@ def _anchor_vote(votes, peak_tdoa, peak_value, pred, pair_ok, pair_idx, decay, i
             votes[j, min(max(c - b, 0), n_bins - 1)] += w
     dev, dev_bin, dev_votes = -1, -1, -1.0
     for i in range(n_dev):
+        # staying and moving are both judged on three bins: one TOA's peaks fall in two neighbouring bins as often
+        # as in one, and a move judged on its single best bin needed about twice the ratio staying needed
         stay = votes[i, c - 1] + votes[i, c] + votes[i, c + 1]
-        best, v = 0, votes[i, 0]
-        for b in range(n_bins):
-            if abs(b - c) > gate_bins and votes[i, b] > v:
-                best, v = b, votes[i, b]
+        best, v = 0, 0.0
+        for b in range(1, n_bins - 1):
+            w3 = votes[i, b - 1] + votes[i, b] + votes[i, b + 1]
+            if abs(b - c) > gate_bins and w3 > v:
+                best, v = b, w3
         if v > ratio * stay and v > min_votes and v > dev_votes:
             dev, dev_bin, dev_votes = i, best, v
     return dev, dev_bin
