@@ -134,7 +134,7 @@ def _anchor_vote(votes, peak_tdoa, peak_value, pred, pair_ok, pair_idx, decay, i
     NaN for none): that peak is the noise's (a vote for staying still counts).
     Returns (device, bin) of the move with the most votes among the devices whose best three neighbouring bins
     centred beyond ``gate_bins`` of the centre have more than ``ratio`` times the votes of the three centre bins
-    and more than ``min_votes``; (-1, -1) when no device qualifies."""
+    and more than ``min_votes`` (the move goes to the highest of the three); (-1, -1) when no device qualifies."""
     n_dev, n_bins = votes.shape
     c = n_bins // 2
     for i in range(n_dev):
@@ -168,7 +168,12 @@ def _anchor_vote(votes, peak_tdoa, peak_value, pred, pair_ok, pair_idx, decay, i
             if abs(b - c) > gate_bins and w3 > v:
                 best, v = b, w3
         if v > ratio * stay and v > min_votes and v > dev_votes:
-            dev, dev_bin, dev_votes = i, best, v
+            top = best   # the move goes to the window's highest bin
+            if votes[i, best - 1] > votes[i, top]:
+                top = best - 1
+            if votes[i, best + 1] > votes[i, top]:
+                top = best + 1
+            dev, dev_bin, dev_votes = i, top, v
     return dev, dev_bin
 
 

@@ -701,3 +701,28 @@ def test_a_noise_heard_in_speech_frames_does_not_drag_the_beam_onto_itself_one_d
         assert on_a.mean() < 0.8 and tr.report()["n_reanchored"] > 0
     else:
         assert on_a.all() and tr.report()["n_reanchored"] == 0
+
+
+def test_a_move_split_over_two_neighbouring_bins_is_weighed_like_staying():
+    """Re-anchoring compares a move's votes with staying's three centre bins. One TOA's peaks fall in two
+    neighbouring two-sample bins as often as in one; a move is weighed on three bins too, so 1.2 + 1.2 votes
+    beside each other beat 1.0 for staying (ratio 2), while 1.9 in one bin alone does not."""
+    from estimators.tracks import REANCHOR_RATIO, _anchor_vote
+    n_bins, c = 41, 20
+    no_pair = np.zeros(1, bool)
+    pairs = np.array([[0, 1]])
+    peaks, values = np.zeros((1, 1)), np.zeros((1, 1))
+    no_noise = np.full((1, 1), np.nan)
+
+    def vote(bins):
+        votes = np.zeros((2, n_bins))
+        votes[1, c] = 1.0                       # staying
+        for b, v in bins.items():
+            votes[1, b] = v
+        return _anchor_vote(votes, peaks, values, np.zeros(1), no_pair, pairs, 1.0, 1.0, 0.1, 4,
+                            REANCHOR_RATIO, 0.5, no_noise, 2.5e-4)
+
+    assert vote({c + 9: 1.2, c + 10: 1.2}) == (1, c + 9)     # 2.4 over bins c+8..c+10 against 1.0
+    assert vote({c + 9: 1.9}) == (-1, -1)                      # 1.9 against 1.0: not twice
+    assert vote({c + 9: 2.1}) == (1, c + 9)
+    assert vote({c + 3: 1.2, c + 4: 1.2}) == (-1, -1)          # within the gate (4 bins): not a move
