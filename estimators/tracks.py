@@ -163,10 +163,11 @@ def _anchor_vote(votes, peak_tdoa, peak_value, pred, pair_ok, pair_idx, decay, i
         # as in one, and a move judged on its single best bin needed about twice the ratio staying needed
         stay = votes[i, c - 1] + votes[i, c] + votes[i, c + 1]
         best, v = 0, 0.0
-        for b in range(1, n_bins - 1):
-            w3 = votes[i, b - 1] + votes[i, b] + votes[i, b + 1]
-            if abs(b - c) > gate_bins and w3 > v:
-                best, v = b, w3
+        for lo, hi in ((1, c - gate_bins), (c + gate_bins + 1, n_bins - 1)):   # windows centred beyond the gate
+            for b in range(lo, hi):
+                w3 = votes[i, b - 1] + votes[i, b] + votes[i, b + 1]
+                if w3 > v:
+                    best, v = b, w3
         if v > ratio * stay and v > min_votes and v > dev_votes:
             top = best   # the move goes to the window's highest bin
             if votes[i, best - 1] > votes[i, top]:
