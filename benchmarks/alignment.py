@@ -85,7 +85,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", type=Path, default=REPO.parent / "shared" / "data",
                     help="the shared data folder (speech and noise recordings)")
-    ap.add_argument("--cache", type=Path, default=Path("/tmp"), help="scenes are built into CACHE/adhoc-array-scenes-sSEED")
+    ap.add_argument("--cache", type=Path, default=Path("/tmp"),
+                    help="scenes are built into CACHE/adhoc-array-scenes-sSEED")
     ap.add_argument("--seeds", default="7", help="comma-separated scene seeds")
     args = ap.parse_args()
     S.DATA = args.data
@@ -108,10 +109,10 @@ def main() -> None:
         if sel:
             out[layout] = {"refine": shares(sel, "refine"), "envelope_only": shares(sel, "envelope")}
     for layout, v in out.items():
-        print(f"{layout:12s} refine  > 2 / 5 / 10 ms: {100 * v['refine']['over_2ms']:.1f} / "
-              f"{100 * v['refine']['over_5ms']:.1f} / {100 * v['refine']['over_10ms']:.1f} %   "
-              f"envelope only: {100 * v['envelope_only']['over_2ms']:.1f} / {100 * v['envelope_only']['over_5ms']:.1f} / "
-              f"{100 * v['envelope_only']['over_10ms']:.1f} %  (n {v['refine']['n']})")
+        r, e = v["refine"], v["envelope_only"]
+        print(f"{layout:12s} refine  > 2 / 5 / 10 ms: {100 * r['over_2ms']:.1f} / {100 * r['over_5ms']:.1f} / "
+              f"{100 * r['over_10ms']:.1f} %   envelope only: {100 * e['over_2ms']:.1f} / "
+              f"{100 * e['over_5ms']:.1f} / {100 * e['over_10ms']:.1f} %  (n {r['n']})")
     print(json.dumps({"benchmark": "alignment", "seeds": args.seeds, "layouts": out}))
 
 
