@@ -39,19 +39,6 @@ MAX_OFFSET_S = 4.0    # ... and `max_offset_s`
 THRESHOLDS_MS = (1, 2, 5, 10)
 
 
-def envelope_lag(x_ref: np.ndarray, x: np.ndarray) -> int:
-    """The envelope step of :func:`stream.offsets.coarse_offset` alone (no refine), samples."""
-    hop_s = 0.01
-    hop = int(round(hop_s * RATE_HZ))
-    e_ref = O.energy_envelope(x_ref, sample_rate_hz=RATE_HZ, hop_s=hop_s)
-    e = O.energy_envelope(x, sample_rate_hz=RATE_HZ, hop_s=hop_s)
-    score, lags = O.normalised_xcorr(e, e_ref)
-    overlap = np.minimum(len(e_ref), len(e) - lags) - np.maximum(0, -lags)
-    ok = (np.abs(lags) <= int(MAX_OFFSET_S / hop_s)) & (overlap >= max(4, int(0.25 * min(len(e), len(e_ref)))))
-    share = np.minimum(overlap / (O.FULL_OVERLAP_SHARE * min(len(e), len(e_ref))), 1.0)
-    return int(lags[int(np.argmax(np.where(ok, score * np.sqrt(share), -np.inf)))]) * hop
-
-
 def scene_errors(folder: Path) -> list[dict]:
     fx = load_fixture(folder)
 
@@ -69,9 +56,10 @@ def scene_errors(folder: Path) -> list[dict]:
         x = load(d)[:w + int(MAX_OFFSET_S * RATE_HZ)]
         truth = [(v[d] - v[0]) * RATE_HZ for v in toa]
         refined, _ = O.coarse_offset(ref, x, sample_rate_hz=RATE_HZ, max_offset_s=MAX_OFFSET_S)
+        envelope = O.envelope_offset(ref, x, sample_rate_hz=RATE_HZ, max_offset_s=MAX_OFFSET_S)   # the baseline
         rows.append({"scene": folder.name, "device": d,
                      **{name: 1e3 * min(abs(o - tr) for tr in truth) / RATE_HZ
-                        for name, o in (("refine", refined), ("envelope", envelope_lag(ref, x)))}})
+                        for name, o in (("refine", refined), ("envelope", envelope[0] if envelope else 0))}})
     return rows
 
 
@@ -94,14 +82,8 @@ def main() -> None:
     for seed in (int(s) for s in args.seeds.split(",")):
         cache = args.cache / f"adhoc-array-scenes-s{seed}"
         cache.mkdir(parents=True, exist_ok=True)
-        for kind, snr, scene in S.make_scenes(seed):
-            folder = cache / scene.name
-            stamp = folder / "scene.repr"
-            key = f"{repr(scene)}\ntruth {S.bf.TRUTH_VERSION}"
-            if not (stamp.is_file() and stamp.read_text() == key):
-                S.bf.build(scene, args.data, cache)
-                stamp.write_text(key)
-            rows += [{"seed": seed, **r} for r in scene_errors(folder)]
+        for _, _, scene in S.make_scenes(seed):
+            rows += [{"seed": seed, **r} for r in scene_errors(S.built(scene, cache, args.data))]
         print(f"seed {seed}: {len(rows)} device alignments so far", flush=True)
     out = {}
     for layout in ("all", "table", "spread", "two_talkers", "moving"):

@@ -359,21 +359,27 @@ def _steer_figures(pipeline, fixture) -> dict:
     return out
 
 
-def run_scene(args) -> dict:
-    kind, snr, scene, estimators, cache, data, overrides = args
-    logging.disable(logging.WARNING)
-    from stream.config import EngineConfig
-    from stream.scoring.fixture import load_fixture
-    from stream.run import run_replay
+def built(scene: bf.Scene, cache: Path, data: Path) -> Path:
+    """The scene's fixture folder in ``cache``, built from ``data`` unless it is there for this very scene."""
     folder = cache / scene.name
     stamp = folder / "scene.repr"
-    t0 = time.perf_counter()
     key = f"{repr(scene)}\ntruth {bf.TRUTH_VERSION}"
     if scene.measured_rirs:
         key += f"\nmeasured {scene.measured_rirs} {bf.MEASURED_VERSION}"
     if not (stamp.is_file() and stamp.read_text() == key):
         bf.build(scene, data, cache)
         stamp.write_text(key)
+    return folder
+
+
+def run_scene(args) -> dict:
+    kind, snr, scene, estimators, cache, data, overrides = args
+    logging.disable(logging.WARNING)
+    from stream.config import EngineConfig
+    from stream.scoring.fixture import load_fixture
+    from stream.run import run_replay
+    t0 = time.perf_counter()
+    folder = built(scene, cache, data)
     t_build = time.perf_counter() - t0
     fixture = load_fixture(folder)
     row = {"scene": scene.name, "kind": kind, "snr_db": snr, "n_devices": len(scene.devices),

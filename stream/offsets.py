@@ -89,6 +89,31 @@ def normalised_xcorr(e: np.ndarray, e_ref: np.ndarray) -> tuple[np.ndarray, np.n
     return score, lags
 
 
+def envelope_offset(x_ref: np.ndarray, x: np.ndarray, *, sample_rate_hz: float, max_offset_s: float,
+                    envelope_hop_s: float = 0.01) -> tuple[int, float] | None:
+    """The envelope step of :func:`coarse_offset`: the lag (samples, in steps of ``envelope_hop_s``) and the
+    quality of the best energy-envelope correlation, or None when there is nothing to correlate."""
+    hop = max(1, int(round(envelope_hop_s * sample_rate_hz)))
+    e_ref = energy_envelope(x_ref, sample_rate_hz=sample_rate_hz, hop_s=envelope_hop_s)
+    e = energy_envelope(x, sample_rate_hz=sample_rate_hz, hop_s=envelope_hop_s)
+    if len(e_ref) < 4 or len(e) < 4 or not e_ref.any() or not e.any():
+        return None
+    score, lags = normalised_xcorr(e, e_ref)
+    max_lag = int(max_offset_s / envelope_hop_s)
+    overlap = np.minimum(len(e_ref), len(e) - lags) - np.maximum(0, -lags)
+    min_overlap = max(4, int(0.25 * min(len(e), len(e_ref))))
+    ok = (np.abs(lags) <= max_lag) & (overlap >= min_overlap)
+    if not ok.any():
+        return None
+    # rank by correlation times the square root of the overlap share (full weight from FULL_OVERLAP_SHARE on),
+    # so that a short overlap that happens to correlate does not beat the long one of the true offset, while
+    # among long overlaps the best correlation wins (a repeated sentence correlates at the repetition's lag too)
+    share = np.minimum(overlap / (FULL_OVERLAP_SHARE * min(len(e), len(e_ref))), 1.0)
+    rank = np.where(ok, score * np.sqrt(share), -np.inf)
+    k = int(np.argmax(rank))
+    return int(lags[k]) * hop, float(np.clip(score[k], 0.0, 1.0))
+
+
 def coarse_offset(x_ref: np.ndarray, x: np.ndarray, *, sample_rate_hz: float, max_offset_s: float,
                   envelope_hop_s: float = 0.01, refine_s: float = 0.05) -> tuple[int, float]:
     """Offset of ``x`` relative to ``x_ref`` in samples, and a quality in [0, 1].
@@ -96,26 +121,11 @@ def coarse_offset(x_ref: np.ndarray, x: np.ndarray, *, sample_rate_hz: float, ma
     ``x[n + offset]`` lines up with ``x_ref[n]``. The quality is the normalised envelope correlation
     at the chosen lag (about 0 for unrelated signals, up to 1).
     """
-    hop = max(1, int(round(envelope_hop_s * sample_rate_hz)))
-    e_ref = energy_envelope(x_ref, sample_rate_hz=sample_rate_hz, hop_s=envelope_hop_s)
-    e = energy_envelope(x, sample_rate_hz=sample_rate_hz, hop_s=envelope_hop_s)
-    if len(e_ref) < 4 or len(e) < 4 or not e_ref.any() or not e.any():
+    found = envelope_offset(x_ref, x, sample_rate_hz=sample_rate_hz, max_offset_s=max_offset_s,
+                            envelope_hop_s=envelope_hop_s)
+    if found is None:
         return 0, 0.0
-    score, lags = normalised_xcorr(e, e_ref)
-    max_lag = int(max_offset_s / envelope_hop_s)
-    overlap = np.minimum(len(e_ref), len(e) - lags) - np.maximum(0, -lags)
-    min_overlap = max(4, int(0.25 * min(len(e), len(e_ref))))
-    ok = (np.abs(lags) <= max_lag) & (overlap >= min_overlap)
-    if not ok.any():
-        return 0, 0.0
-    # rank by correlation times the square root of the overlap share (full weight from FULL_OVERLAP_SHARE on),
-    # so that a short overlap that happens to correlate does not beat the long one of the true offset, while
-    # among long overlaps the best correlation wins (a repeated sentence correlates at the repetition's lag too)
-    share = np.minimum(overlap / (FULL_OVERLAP_SHARE * min(len(e), len(e_ref))), 1.0)
-    rank = np.where(ok, score * np.sqrt(share), -np.inf)
-    k = int(np.argmax(rank))
-    quality = float(np.clip(score[k], 0.0, 1.0))
-    coarse = int(lags[k]) * hop
+    coarse, quality = found
     # refine at sample resolution: PHAT cross-correlation of the waveforms around the envelope lag
     fine = refine_offset(x_ref, x, coarse_samples=coarse, search_samples=int(refine_s * sample_rate_hz))
     return fine, quality
