@@ -48,12 +48,17 @@ Figures per scene and estimator:
 - two talkers: ``turn_latency_s`` per turn change, the time until the steered TOA is within 0.25 ms of the new
   talker for 5 consecutive frames (the turn's length if never).
 
+``--oracle-alignment talker`` (or ``nearest``) replaces the aligner's first offsets with the truth, every device on
+the first talker (or on the true source nearest the offset it found): a bound on what a better coarse alignment
+can give, not an engine mode (:func:`oracle_alignment`).
+
 The final line is one JSON object: per scene kind and SNR, the medians (and the fraction of scenes at least
 as good as the best single device, the worst noise steering), per estimator; and every scene's figures.
 """
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
 import math
@@ -63,6 +68,7 @@ import tempfile
 import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 
@@ -372,8 +378,58 @@ def built(scene: bf.Scene, cache: Path, data: Path) -> Path:
     return folder
 
 
+ORACLE_AT_S = 4.0   # the true offsets are taken at the middle of the aligner's first 8 s window
+
+
+def true_offsets_s(fixture, at_s: float = ORACLE_AT_S) -> list[np.ndarray]:
+    """Per source, the first talker first and the noise sources after it: every device's offset against device
+    0 (seconds, device 0's at 0) that puts that source's arrival at lag 0, at stream time ``at_s``."""
+    talkers = [s for s in fixture.sources if not s.is_noise][:1]
+    out = []
+    for src in talkers + [s for s in fixture.sources if s.is_noise]:
+        toa = fixture.source_toa_at(src.name, np.array([at_s])).ravel()
+        out.append(toa - toa[0])
+    return out
+
+
+@contextlib.contextmanager
+def oracle_alignment(mode: Literal["talker", "nearest"] | None, offsets_s: list[np.ndarray]):
+    """While inside, the aligner's first offsets (``Aligner._initial_alignment``, after its joint check) are
+    replaced by the truth: ``"talker"``, every aligned device on the first talker; ``"nearest"``, on the source
+    nearest the offset the aligner found (a refine without errors). ``--oracle-alignment``: a bound on what a
+    better coarse alignment can give, not an engine mode (docs/tracking-log.md, 2026-11-30). ``None``: no change."""
+    if mode is None:
+        yield
+        return
+    from stream.align import Aligner
+    measured = Aligner._initial_alignment
+
+    def initial_alignment(self) -> None:
+        measured(self)
+        if self.pivot:   # the reference left out: measured against another device, left as it is
+            return
+        fs = self.sample_rate_hz
+        for d in range(1, self.n_devices):
+            if self.clock_groups[d] != d or not self.aligned[d]:
+                continue
+            candidates = [o[d] * fs for o in offsets_s]
+            if mode == "talker":
+                best = candidates[0]
+            else:
+                best = min(candidates, key=lambda c: abs(c - self.offsets_samples[d]))
+            self.offsets_samples[d] = int(round(best))
+            for m in self._group_of[d]:
+                self.offsets_samples[m] = self.offsets_samples[d]
+
+    Aligner._initial_alignment = initial_alignment
+    try:
+        yield
+    finally:
+        Aligner._initial_alignment = measured
+
+
 def run_scene(args) -> dict:
-    kind, snr, scene, estimators, cache, data, overrides = args
+    kind, snr, scene, estimators, cache, data, overrides, oracle = args
     logging.disable(logging.WARNING)
     from stream.config import EngineConfig
     from stream.scoring.fixture import load_fixture
@@ -382,11 +438,12 @@ def run_scene(args) -> dict:
     folder = built(scene, cache, data)
     t_build = time.perf_counter() - t0
     fixture = load_fixture(folder)
+    truth = true_offsets_s(fixture) if oracle else []
     row = {"scene": scene.name, "kind": kind, "snr_db": snr, "n_devices": len(scene.devices),
            "rt60_s": fixture.room.get("rt60_s"), "build_s": round(t_build, 1)}
     for est in estimators:
         t0 = time.perf_counter()
-        with tempfile.TemporaryDirectory(prefix="run_", dir=cache) as tmp:
+        with tempfile.TemporaryDirectory(prefix="run_", dir=cache) as tmp, oracle_alignment(oracle, truth):
             res = run_replay([folder], tmp,
                              config=EngineConfig(estimator=est, progress=False, plots=False, **overrides))
         enh = res.report["metrics"]["enhancement"]
@@ -490,6 +547,9 @@ def main(argv=None) -> int:
     ap.add_argument("--limit", type=int, default=0, help="at most this many scenes")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="an EngineConfig option for every run (repeatable), e.g. --set max_tdoa_s=0.025")
+    ap.add_argument("--oracle-alignment", choices=("talker", "nearest"), default=None,
+                    help="replace the aligner's first offsets by the truth: every device on the first talker, or "
+                         "on the source nearest its measured offset (a bound, not an engine mode; oracle_alignment)")
     args = ap.parse_args(argv)
     DATA = args.data.resolve()
     if not (DATA / "audio").is_dir():
@@ -510,7 +570,7 @@ def main(argv=None) -> int:
             overrides[key] = json.loads(value)
         except json.JSONDecodeError:
             overrides[key] = value
-    jobs = [(k, snr, sc, estimators, args.cache, DATA, overrides) for k, snr, sc in scenes]
+    jobs = [(k, snr, sc, estimators, args.cache, DATA, overrides, args.oracle_alignment) for k, snr, sc in scenes]
     rows = []
     hdr = f"{'scene':38s} {'RT60':>5s} " + " ".join(f"{e:>8s} SI-SDR  TOA%  noise_s" for e in estimators) \
         + "  oracle  single  trueTOA"
@@ -546,6 +606,7 @@ def main(argv=None) -> int:
             f"{k} {v['value']} (need {v['need']}{'' if 'scene' not in v else ', ' + v['scene']}): "
             f"{'met' if v['met'] else 'NOT met'}" for k, v in g.items()))
     print(json.dumps({"benchmark": "scenes", "seed": args.seed, "rooms": args.rooms, "n_scenes": len(rows), "overrides": overrides,
+                      "oracle_alignment": args.oracle_alignment,
                       "seconds": round(time.perf_counter() - t0, 1), "summary": summary, "targets": goals,
                       "gap_split": gaps,
                       "scenes": rows}, default=float))

@@ -52,3 +52,35 @@ def test_the_speech_detector_figures_leave_out_its_hold_after_speech():
     assert f["speech_false_alarm"] == pytest.approx(10 / silent)
     none = speech_detector_figures(np.zeros(10), np.zeros((10, 1), bool), hop_s)
     assert np.isnan(none["speech_recall"]) and none["speech_false_alarm"] == 0.0
+
+
+def test_the_oracle_alignment_puts_every_device_on_the_talker_and_leaves_the_aligner_as_it_was(tmp_path):
+    """``--oracle-alignment talker``: the first offsets are the talker's true ones (within a sample at the working
+    rate); ``nearest``: each device on the true source nearest the measured offset; outside, the aligner is the
+    engine's own."""
+    from scenes import oracle_alignment, true_offsets_s
+    from stream.align import Aligner
+    from stream.config import EngineConfig
+    from stream.run import run_replay
+    from stream.scoring.fixture import load_fixture
+    folder = Path(__file__).resolve().parents[2] / "replay_fixtures" / "kitchen_noise"
+    truth = true_offsets_s(load_fixture(folder))
+    assert len(truth) == 2 and all(o[0] == 0.0 for o in truth)   # the talker, the noise; device 0 at 0
+    config = EngineConfig(progress=False, plots=False)
+    measured = Aligner._initial_alignment
+    first = {}
+
+    def run(mode, offsets_s):
+        with oracle_alignment(mode, offsets_s):
+            res = run_replay([folder], tmp_path / str(mode), config=config)
+        assert Aligner._initial_alignment is measured
+        return np.asarray(list(res.pipeline.state.offsets)[0], float) / res.pipeline.config.working_rate_hz
+
+    first = run(None, truth)
+    fs = 16000.0   # the fixture's working rate
+    assert np.max(np.abs(first - truth[0])) > 10 / fs   # measured: up to 29 samples off the talker
+    assert np.max(np.abs(run("talker", truth) - truth[0])) <= 1 / fs
+    # a third "source" 0.4 samples from every measured offset is the nearest one for every device
+    near = first + 0.4 / fs
+    near[0] = 0.0
+    assert np.max(np.abs(run("nearest", [*truth, near]) - near)) <= 1 / fs
