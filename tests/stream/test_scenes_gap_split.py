@@ -68,7 +68,6 @@ def test_the_oracle_alignment_puts_every_device_on_the_talker_and_leaves_the_ali
     assert len(truth) == 2 and all(o[0] == 0.0 for o in truth)   # the talker, the noise; device 0 at 0
     config = EngineConfig(progress=False, plots=False)
     measured = Aligner._initial_alignment
-    first = {}
 
     def run(mode, offsets_s):
         with oracle_alignment(mode, offsets_s):
