@@ -29,12 +29,18 @@ from tests.conftest import REPO_FIXTURES
 RATE = 16000
 
 
-def _feed(bay, signal_: np.ndarray, n_inputs: int, *, client: str = "PortAudio", output: bool = False) -> threading.Thread:
-    """In a thread: wire bay:out_k to the engine's in_k once its ports exist, play, then wire its output."""
+def _feed(bay, signal_: np.ndarray, n_inputs: int, *, client: str = "PortAudio", output: bool = False,
+          delay_s: float = 0.0) -> threading.Thread:
+    """In a thread: wire bay:out_k to the engine's in_k once its ports exist, wait ``delay_s``, play, then wire
+    its output. The ports exist once the engine opens its stream, a little before it starts capturing: a test
+    that needs the whole signal in the recording waits (without it the capture started up to a period after the
+    playback in about half the takes, and in every one of three takes of a run)."""
     def run():
         ins = bay.wait_ports(rf"{client}:in_", n_inputs, is_input=True)
         for k, port in enumerate(ins):
             bay.rewire(f"bay:out_{k + 1}", port)
+        if delay_s:
+            time.sleep(delay_s)
         bay.play(signal_)
         if output:
             out = bay.wait_ports(rf"{client}:out_", 1, is_output=True, timeout_s=30.0)
@@ -42,6 +48,9 @@ def _feed(bay, signal_: np.ndarray, n_inputs: int, *, client: str = "PortAudio",
     t = threading.Thread(target=run, daemon=True)
     t.start()
     return t
+
+
+WHOLE_DELAY_S = 0.25   # _feed's wait before playing, where a test needs the whole signal in the recording
 
 
 def _clean_take(bay, take, attempts: int = 3, whole=None):
@@ -116,7 +125,7 @@ def test_live_equals_replay_and_the_recording_replays_exactly(jack, bay, tmp_pat
     def take():
         shutil.rmtree(tmp_path / "live", ignore_errors=True)
         shutil.rmtree(tmp_path / "take", ignore_errors=True)
-        _feed(bay, sig, 6, output=True)
+        _feed(bay, sig, 6, output=True, delay_s=WHOLE_DELAY_S)
         return run_live([f"system:{k + 1}" for k in range(6)], tmp_path / "live", output="system",
                         record=tmp_path / "take", max_duration_s=8.5, status=False,
                         names=[d.name for d in fx.devices])
@@ -187,7 +196,7 @@ def test_live_in_batches_wakes_once_a_batch_and_gives_what_its_recording_replays
     def take():
         shutil.rmtree(tmp_path / "live", ignore_errors=True)
         shutil.rmtree(tmp_path / "take", ignore_errors=True)
-        _feed(bay, sig, 6, output=True)
+        _feed(bay, sig, 6, output=True, delay_s=WHOLE_DELAY_S)
         return run_live([f"system:{k + 1}" for k in range(6)], tmp_path / "live", output="system",
                         record=tmp_path / "take", max_duration_s=5.5, status=False, batch_s=0.032,
                         names=[d.name for d in fx.devices])
