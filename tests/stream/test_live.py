@@ -131,8 +131,9 @@ def test_live_equals_replay_and_the_recording_replays_exactly(jack, bay, tmp_pat
                         names=[d.name for d in fx.devices])
 
     def whole(_) -> bool:
-        # the bay plays as soon as the engine's input ports exist; on a loaded machine the card's stream may start
-        # capturing only after that (the recording then has no lead of silence and misses the signal's start)
+        # the bay plays WHOLE_DELAY_S after the engine's input ports exist; on a very loaded machine the card's
+        # stream may start capturing only after that (the recording then has no lead of silence and misses the
+        # signal's start)
         return _lead(sf.read(tmp_path / "take" / f"dev00_{fx.devices[0].name}.wav", dtype="float32")[0]) > 0
 
     live, clean = _clean_take(bay, take, whole=whole)
