@@ -39,8 +39,7 @@ def _feed(bay, signal_: np.ndarray, n_inputs: int, *, client: str = "PortAudio",
         ins = bay.wait_ports(rf"{client}:in_", n_inputs, is_input=True)
         for k, port in enumerate(ins):
             bay.rewire(f"bay:out_{k + 1}", port)
-        if delay_s:
-            time.sleep(delay_s)
+        time.sleep(delay_s)
         bay.play(signal_)
         if output:
             out = bay.wait_ports(rf"{client}:out_", 1, is_output=True, timeout_s=30.0)

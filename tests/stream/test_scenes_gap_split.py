@@ -68,15 +68,17 @@ def test_the_oracle_alignment_puts_every_device_on_the_talker_and_leaves_the_ali
     assert len(truth) == 2 and all(o[0] == 0.0 for o in truth)   # the talker, the noise; device 0 at 0
     config = EngineConfig(progress=False, plots=False)
     measured = Aligner._initial_alignment
+    rate = {}
 
     def run(mode, offsets_s):
         with oracle_alignment(mode, offsets_s):
             res = run_replay([folder], tmp_path / str(mode), config=config)
         assert Aligner._initial_alignment is measured
-        return np.asarray(list(res.pipeline.state.offsets)[0], float) / res.pipeline.config.working_rate_hz
+        rate["hz"] = res.pipeline.config.working_rate_hz
+        return np.asarray(list(res.pipeline.state.offsets)[0], float) / rate["hz"]
 
     first = run(None, truth)
-    fs = 16000.0   # the fixture's working rate
+    fs = rate["hz"]   # the fixture's working rate
     assert np.max(np.abs(first - truth[0])) > 10 / fs   # measured: up to 29 samples off the talker
     assert np.max(np.abs(run("talker", truth) - truth[0])) <= 1 / fs
     # a third "source" 0.4 samples from every measured offset is the nearest one for every device
