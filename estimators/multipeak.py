@@ -57,8 +57,8 @@ _jit = numba.njit(cache=True, nogil=True, error_model="numpy")
 
 # Parameter slots of the compiled call (one float64 array instead of many arguments).
 (_P_MAX_LAG, _P_RATE_HZ, _P_ALPHA, _P_MODE, _P_SPEECH, _P_N_PEAKS, _P_UPDATE, _P_SMOOTH, _P_NOISE_SCALE,
- _P_SMOOTH_FAST, _P_FAST_LO_DB, _P_FAST_HI_DB, _P_PEAKS) = range(13)
-_N_PARAMS = 13
+ _P_SMOOTH_FAST, _P_FAST_LO_DB, _P_FAST_HI_DB, _P_PEAKS, _P_BETA) = range(14)
+_N_PARAMS = 14
 
 # The short-time average moves from its slow to its fast time constant as a pair's frame cross power (sum of
 # |X_i X_j^*| over the bins) rises from FAST_SNR_DB[0] to FAST_SNR_DB[1] above the noise cross power's.
@@ -161,7 +161,7 @@ def _max_nonneg(v):
 
 @_jit
 def _pair_spectrum(xi, xj, oi, oj, phi, sm, g, scratch, a, b, mode, update, phi_scale, adapt, fast, phi_l1, mi, mj,
-                   weigh):
+                   weigh, beta):
     """One pair's weighted cross spectrum into ``g`` (module doc): the short-time average ``sm`` of
     ``X_i X_j^*`` (moved by ``b``; ``b = 1``: this frame only) minus the noise cross power ``phi`` (for
     "phat": this frame's ``X_i X_j^*`` alone), optional per-bin weight, PHAT normalisation; then the noise
@@ -180,7 +180,10 @@ def _pair_spectrum(xi, xj, oi, oj, phi, sm, g, scratch, a, b, mode, update, phi_
     feed the SNR share in dB, ``sum |X_i| |X_j|`` and ``sum |phi|``, are summed in SIMD lanes, with ``|.|`` as a
     float32 ``sqrt``: they may differ in the last bits (the 52 scenes' SI-SDR moved by < 1e-8 dB).
 
-    ``weigh`` False: the averages only (``g`` is left unweighted: a frame whose peaks are not searched)."""
+    ``weigh`` False: the averages only (``g`` is left unweighted: a frame whose peaks are not searched).
+
+    ``beta`` < 1 (not for "subtract-snr"): PHAT-beta, ``G / |G|^beta``, then scaled so that ``sum_k |G_k|`` is
+    ``n_bins`` as with PHAT (the peaks' heights stay on the PHAT scale the thresholds are set for)."""
     n_bins = xi.shape[0]
     if adapt:
         sc = _dot(mi, mj)
@@ -228,11 +231,34 @@ def _pair_spectrum(xi, xj, oi, oj, phi, sm, g, scratch, a, b, mode, update, phi_
             w = one - an / (ac + _TINY)
             w = w if w > 0 else np.float32(0.0)
             g[k] = g[k] * (w / np.sqrt(scratch[k] + eps2))
-    else:
+    elif beta == 1.0:
         for k in range(n_bins):
             w = one / np.sqrt(m2[k] + eps2)
             gf[2 * k] *= w
             gf[2 * k + 1] *= w
+    else:
+        # |G|^-beta = |G|^-1 |G|^(1 - beta), the second factor a product of the powers |G|^(2^-j) of the set
+        # binary digits of (1 - beta) / 2 to 2^-10: ten passes of square roots vectorise, a pow per bin does not
+        q = int(round((1.0 - beta) * 512.0))
+        for k in range(n_bins):
+            m2[k] = m2[k] + eps2
+            w = one / np.sqrt(m2[k])
+            gf[2 * k] *= w
+            gf[2 * k + 1] *= w
+        for j in range(1, 11):
+            if (q >> (10 - j)) & 1:
+                for k in range(n_bins):
+                    m2[k] = np.sqrt(m2[k])
+                    gf[2 * k] *= m2[k]
+                    gf[2 * k + 1] *= m2[k]
+            else:
+                for k in range(n_bins):
+                    m2[k] = np.sqrt(m2[k])
+        total = _abs_sum(gf)
+        if total > 0.0:
+            scale = np.float32(n_bins / total)
+            for k in range(2 * n_bins):
+                gf[k] *= scale
 
 
 @numba.njit(
@@ -278,6 +304,7 @@ def _frame(spectra, valid, old, old_usable, noise, smooth, noise_l1, cross, corr
     phi_scale = np.float32(params[_P_NOISE_SCALE])
     fast = (np.float32(params[_P_SMOOTH_FAST]), params[_P_FAST_LO_DB], params[_P_FAST_HI_DB])
     peaks = params[_P_PEAKS] != 0.0   # False: the averages only, no weighting, correlation or peaks
+    beta = params[_P_BETA]
     for i in range(m):
         usable[i] = _channel_ok(spec[i], valid[i])
     adapt = fast[0] > b and mode != 0   # the average's time constant follows each pair's SNR this frame
@@ -295,7 +322,7 @@ def _frame(spectra, valid, old, old_usable, noise, smooth, noise_l1, cross, corr
             if usable[i] and usable[j]:
                 _pair_spectrum(xi, spec[j], old[i], old[j], noise[p], smooth[p], g, corr[p], a, b, mode,
                                update and old_usable[i] and old_usable[j], phi_scale, adapt, fast, noise_l1[p:p + 1],
-                               mag[i], mag[j], peaks)
+                               mag[i], mag[j], peaks, beta)
             else:
                 g[:] = 0.0
             p += 1
@@ -368,12 +395,17 @@ class NoiseAwareGcc:
         The noise average takes each frame this long after it was heard, weighted by ``1 - max p`` over the
         frames since: a talker's onset, heard before the speech detector fires, then never enters it (0: each
         frame at once, weighted by its own ``p``).
+    phat_beta : float
+        The PHAT weighting's exponent ``beta`` in ``G / |G|^beta``, in (0, 1] (1: PHAT). Below 1 the louder
+        bins (in a room with a point noise source: the talker's harmonics, once the noise's cross power is
+        removed) count for more; "subtract-snr" ignores it.
     """
 
     def __init__(self, n_channels: int, *, n_fft: int, sample_rate_hz: float, hop_s: float,
                  max_tdoa_s: float, n_peaks: int = 3, weighting: Weighting = "subtract",
                  noise_time_constant_s: float = 1.0, smoothing_time_constant_s: float = 0.0,
-                 fast_smoothing_time_constant_s: float | None = None, noise_delay_s: float = 0.0) -> None:
+                 fast_smoothing_time_constant_s: float | None = None, noise_delay_s: float = 0.0,
+                 phat_beta: float = 1.0) -> None:
         if int(n_channels) != n_channels or n_channels < 2:
             raise ValueError(f"{n_channels=} must be an integer >= 2")
         if int(n_fft) != n_fft or n_fft < 8:
@@ -386,6 +418,8 @@ class NoiseAwareGcc:
             raise ValueError(f"{n_peaks=} must be an integer >= 1")
         if weighting not in _WEIGHTINGS:
             raise ValueError(f"{weighting=} must be one of {', '.join(_WEIGHTINGS)}")
+        if not (np.isfinite(phat_beta) and 0 < phat_beta <= 1):
+            raise ValueError(f"{phat_beta=} must be in (0, 1]")
         self.n_channels = int(n_channels)
         self.n_fft = int(n_fft)
         self.n_bins = self.n_fft // 2 + 1
@@ -404,6 +438,8 @@ class NoiseAwareGcc:
         self._params[_P_N_PEAKS] = self.n_peaks
         self._params[_P_UPDATE] = 1.0
         self._params[_P_PEAKS] = 1.0
+        self.phat_beta = float(phat_beta)
+        self._params[_P_BETA] = self.phat_beta
         if not (np.isfinite(smoothing_time_constant_s) and smoothing_time_constant_s >= 0):
             raise ValueError(f"{smoothing_time_constant_s=} must be finite and >= 0")
         self.smoothing_time_constant_s = float(smoothing_time_constant_s)

@@ -63,6 +63,7 @@ class EngineConfig:
     target: str = "active-talker"                  # or "nearest DEVICE" (a device name or index)
     vad: str = "auto"                              # speech-presence backend (stream.speech), "auto" = the default
     gcc_weighting: GccWeighting = "subtract"       # noise cross-power removal before PHAT (estimators.multipeak)
+    gcc_phat_beta: float = 0.9                     # PHAT-beta exponent of the tracker's GCC (1: PHAT)
     n_peaks: int = 5                               # GCC peaks kept per pair (tracker)
     noise_time_constant_s: float = 1.0             # noise cross-power average over non-speech frames
     noise_delay_s: float = 0.25                    # a frame joins the noise average this late, if no speech came since
@@ -136,6 +137,8 @@ class EngineConfig:
         """Raise ConfigError with the option, its value and the condition it breaks."""
         if self.estimator not in ("tracks", "subset", "pinv", "kalman", "smoother"):
             raise ConfigError(f"estimator={self.estimator!r} must be one of tracks, subset, pinv, kalman, smoother")
+        if not (math.isfinite(self.gcc_phat_beta) and 0 < self.gcc_phat_beta <= 1):
+            raise ConfigError(f"gcc_phat_beta={self.gcc_phat_beta} must be in (0, 1] (1: plain PHAT)")
         if self.gcc_weighting not in ("subtract", "subtract-snr", "phat"):
             raise ConfigError(f"gcc_weighting={self.gcc_weighting!r} must be 'subtract', 'subtract-snr' or 'phat'")
         words = str(self.target).split()

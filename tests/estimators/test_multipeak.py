@@ -105,6 +105,9 @@ def test_bad_arguments_raise_at_construction():
         NoiseAwareGcc(2, n_fft=512, sample_rate_hz=FS, hop_s=0.01, max_tdoa_s=0.01, weighting="ml")
     with pytest.raises(ValueError, match="n_peaks"):
         NoiseAwareGcc(2, n_fft=512, sample_rate_hz=FS, hop_s=0.01, max_tdoa_s=0.01, n_peaks=0)
+    for beta in (0.0, 1.5, float("nan")):
+        with pytest.raises(ValueError, match="phat_beta"):
+            NoiseAwareGcc(2, n_fft=512, sample_rate_hz=FS, hop_s=0.01, max_tdoa_s=0.01, phat_beta=beta)
     gcc = NoiseAwareGcc(2, n_fft=512, sample_rate_hz=FS, hop_s=0.01, max_tdoa_s=0.01)
     with pytest.raises(ValueError, match="spectra.shape"):
         gcc.process(np.zeros((10, 2), np.complex64), speech_probability=0.0)
@@ -221,15 +224,18 @@ def test_fast_smoothing_follows_a_moving_talker_that_stands_clear_of_the_noise(n
                       smoothing_time_constant_s=0.1, fast_smoothing_time_constant_s=0.2)
 
 
-def test_the_compiled_frame_is_the_module_docs_formulas():
+@pytest.mark.parametrize("beta", [1.0, 0.9, 0.7])
+def test_the_compiled_frame_is_the_module_docs_formulas(beta):
     """Frame by frame against numpy on the module doc's formulas (short-time average with the SNR-adaptive
-    constant, noise removal and its update on non-speech frames, PHAT, irfft, the top peak)."""
+    constant, noise removal and its update on non-speech frames, PHAT or PHAT-beta, irfft, the top peak)."""
     m, n_fft, hop = 4, 256, 64
     rng = np.random.default_rng(11)
     x, active, _, _ = _two_sources(5, n_devices=m, seconds=1.5, noise_gain=1.0, talker_gain=2.0)
     stft = beamform.StreamingStft(m, frame_samples=n_fft, hop_samples=hop)
     gcc = NoiseAwareGcc(m, n_fft=n_fft, sample_rate_hz=FS, hop_s=hop / FS, max_tdoa_s=0.004, n_peaks=1,
-                        smoothing_time_constant_s=0.1, fast_smoothing_time_constant_s=0.02)
+                        smoothing_time_constant_s=0.1, fast_smoothing_time_constant_s=0.02, phat_beta=beta)
+    # the kernel's exponent: (1 - beta) / 2 to ten binary digits
+    beta_kernel = 1.0 - 2.0 * round((1.0 - beta) * 512) / 1024
     p_idx = pairs(m)
     n_bins = n_fft // 2 + 1
     alpha = 1 - np.exp(-hop / FS / 1.0)
@@ -255,7 +261,10 @@ def test_the_compiled_frame_is_the_module_docs_formulas():
             g = sm[p] - scale * phi[p]
             phi[p] += a * (c - phi[p])
             eps = 1e-6 * np.abs(g).max()
-            r = np.fft.irfft(g / np.sqrt(np.abs(g) ** 2 + eps ** 2), n_fft)
+            gw = g / (np.abs(g) ** 2 + eps ** 2) ** (beta_kernel / 2)
+            if beta < 1:   # the PHAT scale: sum_k |G_k| = n_bins
+                gw *= n_bins / np.abs(gw).sum()
+            r = np.fft.irfft(gw, n_fft)
             top = lags[np.argmax(r[lags])]
             lag = top - n_fft if top > n_fft // 2 else top
             assert value[p, 0] == pytest.approx(r[top], rel=1e-3, abs=1e-4)
