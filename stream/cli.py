@@ -33,6 +33,8 @@ def _add_engine_options(p: argparse.ArgumentParser) -> None:
                    "silero, webrtc or energy")
     g.add_argument("--gcc-weighting", choices=["subtract", "subtract-snr", "phat"],
                    help="noise cross-power removal before the PHAT weighting (default: subtract)")
+    g.add_argument("--gcc-phat-beta", type=float,
+                   help="the weighting's exponent: G / |G|^beta, in (0, 1] (default 0.9; 1: plain PHAT)")
     g.add_argument("--n-peaks", type=int, help="GCC-PHAT peaks kept per pair for the tracker (default 5)")
     g.add_argument("--gcc-smoothing-s", type=float,
                    help="short-time average of the cross-power spectra before the noise removal, seconds "
