@@ -28,6 +28,12 @@ point noise source and with more than one talker:
    talker's peak far steadier under the noise but lags a moving talker; with
    ``fast_smoothing_time_constant_s`` the average is shorter in the frames where a pair's cross power stands
    well above the noise's (``FAST_SNR_DB``).
+
+   With ``phat_beta`` < 1 ("subtract" and "phat"), the weighting is PHAT-β: ``r_ij = irfft(c G_ij /
+   |G_ij|^beta)``, ``c`` such that ``sum_k |c G_ij / |G_ij|^beta| = n_bins`` as with PHAT (the peaks stay on
+   PHAT's scale). The louder bins (after the removal: the talker's harmonics) then count for more than those
+   left with the noise's residue and the late reverberation. ``|G|^(1 - beta)`` is computed as a product of
+   repeated square roots, to 2^-10 in ``(1 - beta) / 2``.
 2. **The N best peaks** of every pair's correlation within ``|lag| <= max_lag_samples`` (local maxima,
    highest first, refined to a fraction of a sample with the three-point parabola) instead of the
    single maximum of eq. (6), as BeamformIt keeps the N best delays per channel pair.

@@ -63,7 +63,7 @@ class EngineConfig:
     target: str = "active-talker"                  # or "nearest DEVICE" (a device name or index)
     vad: str = "auto"                              # speech-presence backend (stream.speech), "auto" = the default
     gcc_weighting: GccWeighting = "subtract"       # noise cross-power removal before PHAT (estimators.multipeak)
-    gcc_phat_beta: float = 0.9                     # PHAT-beta exponent of the tracker's GCC (1: PHAT)
+    gcc_phat_beta: float = 1.0                     # PHAT-beta exponent of the tracker's GCC (1: PHAT)
     n_peaks: int = 5                               # GCC peaks kept per pair (tracker)
     noise_time_constant_s: float = 1.0             # noise cross-power average over non-speech frames
     noise_delay_s: float = 0.25                    # a frame joins the noise average this late, if no speech came since

@@ -322,3 +322,20 @@ def test_frames_without_peaks_move_the_averages_exactly_as_frames_with_them(weig
         n_compared += 1
     assert n_compared > 50 and every.noise_mature and other.noise_mature
     np.testing.assert_array_equal(other.noise_peaks()[2], every.noise_peaks()[2])
+
+
+def test_the_engine_option_reaches_the_tracker_gcc_and_a_bad_value_is_one_sentence(tmp_path):
+    from pathlib import Path
+
+    from stream.config import EngineConfig
+    from stream.errors import ConfigError
+    from stream.run import run_replay
+    with pytest.raises(ConfigError, match="gcc_phat_beta"):
+        EngineConfig(gcc_phat_beta=1.5).resolved(16000.0)
+    assert EngineConfig().gcc_phat_beta == 1.0   # PHAT by default (docs/tracking-log.md, "Tried 2026-11-30")
+    fixture = Path(__file__).resolve().parents[2] / "replay_fixtures" / "two_talkers"
+    outcome = run_replay([fixture], tmp_path / "o", config=EngineConfig(gcc_phat_beta=0.9, plots=False,
+                                                                         progress=False))
+    assert outcome.pipeline.gcc.phat_beta == 0.9
+    enh = outcome.report["metrics"]["enhancement"]
+    assert enh["engine"]["si_sdr_db"] > enh["best_single_device"]["si_sdr_db"] + 2.0
