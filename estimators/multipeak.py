@@ -237,34 +237,39 @@ def _pair_spectrum(xi, xj, oi, oj, phi, sm, g, scratch, a, b, mode, update, phi_
             w = one - an / (ac + _TINY)
             w = w if w > 0 else np.float32(0.0)
             g[k] = g[k] * (w / np.sqrt(scratch[k] + eps2))
-    elif beta == 1.0:
+    else:
         for k in range(n_bins):
             w = one / np.sqrt(m2[k] + eps2)
             gf[2 * k] *= w
             gf[2 * k + 1] *= w
-    else:
-        # |G|^-beta = |G|^-1 |G|^(1 - beta), the second factor a product of the powers |G|^(2^-j) of the set
-        # binary digits of (1 - beta) / 2 to 2^-10: ten passes of square roots vectorise, a pow per bin does not
-        q = int(round((1.0 - beta) * 512.0))
-        for k in range(n_bins):
-            m2[k] = m2[k] + eps2
-            w = one / np.sqrt(m2[k])
-            gf[2 * k] *= w
-            gf[2 * k + 1] *= w
-        for j in range(1, 11):
-            if (q >> (10 - j)) & 1:
-                for k in range(n_bins):
-                    m2[k] = np.sqrt(m2[k])
-                    gf[2 * k] *= m2[k]
-                    gf[2 * k + 1] *= m2[k]
-            else:
-                for k in range(n_bins):
-                    m2[k] = np.sqrt(m2[k])
-        total = _abs_sum(gf)
-        if total > 0.0:
-            scale = np.float32(n_bins / total)
-            for k in range(2 * n_bins):
-                gf[k] *= scale
+        if beta != 1.0:
+            _phat_beta(gf, m2, eps2, beta)
+
+
+@_jit
+def _phat_beta(gf, m2, eps2, beta):
+    """PHAT-weighted ``G`` (interleaved ``gf``) to ``c G / |G|^beta`` with ``sum_k |.| = n_bins``: times
+    ``|G|^(1 - beta)``, a product of the powers ``|G|^(2^-j)`` of the set binary digits of ``(1 - beta) / 2`` to
+    2^-10 (ten passes of square roots of ``m2 + eps2 = |G|^2 + eps^2`` vectorise; a pow per bin does not).
+    ``m2`` is overwritten."""
+    n_bins = m2.shape[0]
+    q = int(round((1.0 - beta) * 512.0))
+    for k in range(n_bins):
+        m2[k] = m2[k] + eps2
+    for j in range(1, 11):
+        if (q >> (10 - j)) & 1:
+            for k in range(n_bins):
+                m2[k] = np.sqrt(m2[k])
+                gf[2 * k] *= m2[k]
+                gf[2 * k + 1] *= m2[k]
+        else:
+            for k in range(n_bins):
+                m2[k] = np.sqrt(m2[k])
+    total = _abs_sum(gf)
+    if total > 0.0:
+        scale = np.float32(n_bins / total)
+        for k in range(2 * n_bins):
+            gf[k] *= scale
 
 
 @numba.njit(
