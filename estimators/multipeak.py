@@ -33,7 +33,9 @@ point noise source and with more than one talker:
    |G_ij|^beta)``, ``c`` such that ``sum_k |c G_ij / |G_ij|^beta| = n_bins`` as with PHAT (the peaks stay on
    PHAT's scale). The louder bins (after the removal: the talker's harmonics) then count for more than those
    left with the noise's residue and the late reverberation. ``|G|^(1 - beta)`` is computed as a product of
-   repeated square roots, to 2^-10 in ``(1 - beta) / 2``.
+   repeated square roots, to 2^-10 in ``(1 - beta) / 2``. With ``phat_beta_near_noise`` each pair's exponent
+   moves from ``phat_beta`` to 1 by the same SNR share as the time constant (``FAST_SNR_DB``): PHAT-β where
+   the pair is near the noise, PHAT where it stands clear of it.
 2. **The N best peaks** of every pair's correlation within ``|lag| <= max_lag_samples`` (local maxima,
    highest first, refined to a fraction of a sample with the three-point parabola) instead of the
    single maximum of eq. (6), as BeamformIt keeps the N best delays per channel pair.
@@ -63,8 +65,8 @@ _jit = numba.njit(cache=True, nogil=True, error_model="numpy")
 
 # Parameter slots of the compiled call (one float64 array instead of many arguments).
 (_P_MAX_LAG, _P_RATE_HZ, _P_ALPHA, _P_MODE, _P_SPEECH, _P_N_PEAKS, _P_UPDATE, _P_SMOOTH, _P_NOISE_SCALE,
- _P_SMOOTH_FAST, _P_FAST_LO_DB, _P_FAST_HI_DB, _P_PEAKS, _P_BETA) = range(14)
-_N_PARAMS = 14
+ _P_SMOOTH_FAST, _P_FAST_LO_DB, _P_FAST_HI_DB, _P_PEAKS, _P_BETA, _P_BETA_NEAR_NOISE) = range(15)
+_N_PARAMS = 15
 
 # The short-time average moves from its slow to its fast time constant as a pair's frame cross power (sum of
 # |X_i X_j^*| over the bins) rises from FAST_SNR_DB[0] to FAST_SNR_DB[1] above the noise cross power's.
@@ -167,7 +169,7 @@ def _max_nonneg(v):
 
 @_jit
 def _pair_spectrum(xi, xj, oi, oj, phi, sm, g, scratch, a, b, mode, update, phi_scale, adapt, fast, phi_l1, mi, mj,
-                   weigh, beta):
+                   weigh, beta, beta_near_noise):
     """One pair's weighted cross spectrum into ``g`` (module doc): the short-time average ``sm`` of
     ``X_i X_j^*`` (moved by ``b``; ``b = 1``: this frame only) minus the noise cross power ``phi`` (for
     "phat": this frame's ``X_i X_j^*`` alone), optional per-bin weight, PHAT normalisation; then the noise
@@ -189,16 +191,20 @@ def _pair_spectrum(xi, xj, oi, oj, phi, sm, g, scratch, a, b, mode, update, phi_
     ``weigh`` False: the averages only (``g`` is left unweighted: a frame whose peaks are not searched).
 
     ``beta`` < 1 (not for "subtract-snr"): PHAT-beta, ``G / |G|^beta``, then scaled so that ``sum_k |G_k|`` is
-    ``n_bins`` as with PHAT (the peaks' heights stay on the PHAT scale the thresholds are set for)."""
+    ``n_bins`` as with PHAT (the peaks' heights stay on the PHAT scale the thresholds are set for);
+    ``beta_near_noise``: ``beta`` moves to 1 by the pair's SNR share (computed as for ``adapt``)."""
     n_bins = xi.shape[0]
-    if adapt:
+    if adapt or beta_near_noise:
         sc = _dot(mi, mj)
         noise = phi_scale * phi_l1[0]
         share = 1.0
         if noise > 0.0:
             snr_db = 10.0 * np.log10(max(sc, 1e-30) / noise)
             share = min(max((snr_db - fast[1]) / (fast[2] - fast[1]), 0.0), 1.0)
-        b = np.float32(b + share * (fast[0] - b))
+        if adapt:
+            b = np.float32(b + share * (fast[0] - b))
+        if beta_near_noise:   # PHAT where the pair stands clear of the noise
+            beta = beta + share * (1.0 - beta)
     xf, yf, smf, phf, gf = xi.view(np.float32), xj.view(np.float32), sm.view(np.float32), phi.view(np.float32), \
         g.view(np.float32)
     m2 = scratch[:n_bins]
@@ -254,6 +260,8 @@ def _phat_beta(gf, m2, eps2, beta):
     ``m2`` is overwritten."""
     n_bins = m2.shape[0]
     q = int(round((1.0 - beta) * 512.0))
+    if q == 0:
+        return
     for k in range(n_bins):
         m2[k] = m2[k] + eps2
     for j in range(1, 11):
@@ -316,10 +324,11 @@ def _frame(spectra, valid, old, old_usable, noise, smooth, noise_l1, cross, corr
     fast = (np.float32(params[_P_SMOOTH_FAST]), params[_P_FAST_LO_DB], params[_P_FAST_HI_DB])
     peaks = params[_P_PEAKS] != 0.0   # False: the averages only, no weighting, correlation or peaks
     beta = params[_P_BETA]
+    beta_near_noise = params[_P_BETA_NEAR_NOISE] != 0.0 and beta != 1.0 and mode != 0
     for i in range(m):
         usable[i] = _channel_ok(spec[i], valid[i])
     adapt = fast[0] > b and mode != 0   # the average's time constant follows each pair's SNR this frame
-    if adapt:
+    if adapt or beta_near_noise:
         for i in range(m):
             if usable[i]:
                 xf = spec[i].view(np.float32)
@@ -333,7 +342,7 @@ def _frame(spectra, valid, old, old_usable, noise, smooth, noise_l1, cross, corr
             if usable[i] and usable[j]:
                 _pair_spectrum(xi, spec[j], old[i], old[j], noise[p], smooth[p], g, corr[p], a, b, mode,
                                update and old_usable[i] and old_usable[j], phi_scale, adapt, fast, noise_l1[p:p + 1],
-                               mag[i], mag[j], peaks, beta)
+                               mag[i], mag[j], peaks, beta, beta_near_noise)
             else:
                 g[:] = 0.0
             p += 1
@@ -410,13 +419,18 @@ class NoiseAwareGcc:
         The PHAT weighting's exponent ``beta`` in ``G / |G|^beta``, in (0, 1] (1: PHAT). Below 1 the louder
         bins (in a room with a point noise source: the talker's harmonics, once the noise's cross power is
         removed) count for more; "subtract-snr" ignores it.
+    phat_beta_near_noise : bool
+        With ``phat_beta`` < 1: each pair's exponent moves from ``phat_beta`` to 1 (PHAT) as its frame's cross
+        power rises from ``FAST_SNR_DB[0]`` to ``FAST_SNR_DB[1]`` above the noise cross power: the weighting
+        where the noise is, PHAT where the pair stands clear of it (a real room's coherent low-frequency
+        reflections are louder bins too).
     """
 
     def __init__(self, n_channels: int, *, n_fft: int, sample_rate_hz: float, hop_s: float,
                  max_tdoa_s: float, n_peaks: int = 3, weighting: Weighting = "subtract",
                  noise_time_constant_s: float = 1.0, smoothing_time_constant_s: float = 0.0,
                  fast_smoothing_time_constant_s: float | None = None, noise_delay_s: float = 0.0,
-                 phat_beta: float = 1.0) -> None:
+                 phat_beta: float = 1.0, phat_beta_near_noise: bool = False) -> None:
         if int(n_channels) != n_channels or n_channels < 2:
             raise ValueError(f"{n_channels=} must be an integer >= 2")
         if int(n_fft) != n_fft or n_fft < 8:
@@ -451,6 +465,8 @@ class NoiseAwareGcc:
         self._params[_P_PEAKS] = 1.0
         self.phat_beta = float(phat_beta)
         self._params[_P_BETA] = self.phat_beta
+        self.phat_beta_near_noise = bool(phat_beta_near_noise)
+        self._params[_P_BETA_NEAR_NOISE] = float(self.phat_beta_near_noise)
         if not (np.isfinite(smoothing_time_constant_s) and smoothing_time_constant_s >= 0):
             raise ValueError(f"{smoothing_time_constant_s=} must be finite and >= 0")
         self.smoothing_time_constant_s = float(smoothing_time_constant_s)

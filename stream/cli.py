@@ -36,6 +36,9 @@ def _add_engine_options(p: argparse.ArgumentParser) -> None:
     g.add_argument("--gcc-phat-beta", type=float,
                    help="the weighting's exponent: G / |G|^beta, in (0, 1] (default 1: plain PHAT; 0.9 gained on "
                         "simulated rooms and lost on measured ones: docs/tracking-log.md)")
+    g.add_argument("--gcc-phat-beta-near-noise", action="store_const", const=True,
+                   help="with --gcc-phat-beta below 1: that exponent only on the pairs near the noise, PHAT on "
+                        "those that stand 30 dB clear of it")
     g.add_argument("--n-peaks", type=int, help="GCC-PHAT peaks kept per pair for the tracker (default 5)")
     g.add_argument("--gcc-smoothing-s", type=float,
                    help="short-time average of the cross-power spectra before the noise removal, seconds "

@@ -64,6 +64,7 @@ class EngineConfig:
     vad: str = "auto"                              # speech-presence backend (stream.speech), "auto" = the default
     gcc_weighting: GccWeighting = "subtract"       # noise cross-power removal before PHAT (estimators.multipeak)
     gcc_phat_beta: float = 1.0                     # PHAT-beta exponent of the tracker's GCC (1: PHAT)
+    gcc_phat_beta_near_noise: bool = False         # the exponent only where a pair is near the noise, PHAT elsewhere
     n_peaks: int = 5                               # GCC peaks kept per pair (tracker)
     noise_time_constant_s: float = 1.0             # noise cross-power average over non-speech frames
     noise_delay_s: float = 0.25                    # a frame joins the noise average this late, if no speech came since
@@ -139,6 +140,8 @@ class EngineConfig:
             raise ConfigError(f"estimator={self.estimator!r} must be one of tracks, subset, pinv, kalman, smoother")
         if not (math.isfinite(self.gcc_phat_beta) and 0 < self.gcc_phat_beta <= 1):
             raise ConfigError(f"gcc_phat_beta={self.gcc_phat_beta} must be in (0, 1] (1: plain PHAT)")
+        if not isinstance(self.gcc_phat_beta_near_noise, bool):
+            raise ConfigError(f"gcc_phat_beta_near_noise={self.gcc_phat_beta_near_noise!r} must be true or false")
         if self.gcc_weighting not in ("subtract", "subtract-snr", "phat"):
             raise ConfigError(f"gcc_weighting={self.gcc_weighting!r} must be 'subtract', 'subtract-snr' or 'phat'")
         words = str(self.target).split()

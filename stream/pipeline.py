@@ -310,7 +310,8 @@ class Pipeline:
                 max_tdoa_s=config.max_tdoa_s, n_peaks=config.n_peaks, weighting=config.gcc_weighting,
                 noise_time_constant_s=config.noise_time_constant_s, smoothing_time_constant_s=config.gcc_smoothing_s,
                 fast_smoothing_time_constant_s=min(config.gcc_fast_smoothing_s, config.gcc_smoothing_s),
-                noise_delay_s=config.noise_delay_s, phat_beta=config.gcc_phat_beta)
+                noise_delay_s=config.noise_delay_s, phat_beta=config.gcc_phat_beta,
+                phat_beta_near_noise=config.gcc_phat_beta_near_noise)
             self.estimator = self.tracker = make_estimator(config, self.n_devices, device_names)
             if speech is None:
                 from .speech import make_speech_presence
@@ -359,7 +360,8 @@ class Pipeline:
             gcc = estimators.NoiseAwareGcc(m, n_fft=cfg.frame_samples, sample_rate_hz=cfg.working_rate_hz,
                                            hop_s=cfg.hop_samples / cfg.working_rate_hz, max_tdoa_s=cfg.max_tdoa_s,
                                            n_peaks=cfg.n_peaks, weighting=cfg.gcc_weighting,
-                                           phat_beta=cfg.gcc_phat_beta)
+                                           phat_beta=cfg.gcc_phat_beta,
+                                           phat_beta_near_noise=cfg.gcc_phat_beta_near_noise)
             peak_tdoa, peak_value = gcc.process(spectra, speech_probability=0.0, valid=np.ones(m, bool))
             noise = gcc.noise_peaks()
             if m >= 2:

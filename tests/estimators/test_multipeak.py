@@ -224,18 +224,22 @@ def test_fast_smoothing_follows_a_moving_talker_that_stands_clear_of_the_noise(n
                       smoothing_time_constant_s=0.1, fast_smoothing_time_constant_s=0.2)
 
 
-@pytest.mark.parametrize("beta", [1.0, 0.9, 0.7])
-def test_the_compiled_frame_is_the_module_docs_formulas(beta):
+@pytest.mark.parametrize("beta, near_noise", [(1.0, False), (0.9, False), (0.7, False), (0.7, True)])
+def test_the_compiled_frame_is_the_module_docs_formulas(beta, near_noise):
     """Frame by frame against numpy on the module doc's formulas (short-time average with the SNR-adaptive
-    constant, noise removal and its update on non-speech frames, PHAT or PHAT-beta, irfft, the top peak)."""
+    constant, noise removal and its update on non-speech frames, PHAT or PHAT-beta (``near_noise``: each
+    pair's exponent moved towards 1 by its SNR share), irfft, the top peak)."""
     m, n_fft, hop = 4, 256, 64
     rng = np.random.default_rng(11)
-    x, active, _, _ = _two_sources(5, n_devices=m, seconds=1.5, noise_gain=1.0, talker_gain=2.0)
+    # near_noise: a talker 20-25 dB above the noise and an exact speech flag, so that the pairs' SNR shares
+    # (and with them the exponents) also fall between 0 and 1
+    x, active, _, _ = _two_sources(5, n_devices=m, seconds=1.5, noise_gain=0.15 if near_noise else 1.0,
+                                   talker_gain=2.0)
     stft = beamform.StreamingStft(m, frame_samples=n_fft, hop_samples=hop)
     gcc = NoiseAwareGcc(m, n_fft=n_fft, sample_rate_hz=FS, hop_s=hop / FS, max_tdoa_s=0.004, n_peaks=1,
-                        smoothing_time_constant_s=0.1, fast_smoothing_time_constant_s=0.02, phat_beta=beta)
-    # the kernel's exponent: (1 - beta) / 2 to ten binary digits
-    beta_kernel = 1.0 - 2.0 * round((1.0 - beta) * 512) / 1024
+                        smoothing_time_constant_s=0.1, fast_smoothing_time_constant_s=0.02, phat_beta=beta,
+                        phat_beta_near_noise=near_noise)
+    shares = []
     p_idx = pairs(m)
     n_bins = n_fft // 2 + 1
     alpha = 1 - np.exp(-hop / FS / 1.0)
@@ -247,7 +251,7 @@ def test_the_compiled_frame_is_the_module_docs_formulas(beta):
     lags = np.r_[np.arange(-max_lag, 0) + n_fft, np.arange(0, max_lag + 1)]
     for k in range(len(x) // hop):
         X = stft.process(x[k * hop:(k + 1) * hop]).T.astype(complex)
-        speech = float(active[k // 4] if k // 4 < len(active) else 0.0) * float(rng.random() < 0.8)
+        speech = float(active[k // 4] if k // 4 < len(active) else 0.0) * float(rng.random() < 0.8 or near_noise)
         tdoa, value = gcc.process(np.asfortranarray(X.T.astype(np.complex64)), speech_probability=speech)
         scale = 1.0 / weight if weight > 1e-6 else 0.0
         a = alpha * (1 - speech)
@@ -257,12 +261,16 @@ def test_the_compiled_frame_is_the_module_docs_formulas(beta):
             share = 1.0 if noise == 0 else np.clip(
                 (10 * np.log10(np.sum(np.abs(X[i]) * np.abs(X[j])) / noise) - 15.0) / 15.0, 0.0, 1.0)
             b = b_slow + share * (b_fast - b_slow)
+            shares.append(share)
+            beta_pair = beta + share * (1 - beta) if near_noise else beta
+            q = round((1.0 - beta_pair) * 512)   # the kernel's exponent: (1 - beta) / 2 to ten binary digits
+            beta_kernel = 1.0 - 2.0 * q / 1024
             sm[p] += b * (c - sm[p])
             g = sm[p] - scale * phi[p]
             phi[p] += a * (c - phi[p])
             eps = 1e-6 * np.abs(g).max()
             gw = g / (np.abs(g) ** 2 + eps ** 2) ** (beta_kernel / 2)
-            if beta < 1:   # the PHAT scale: sum_k |G_k| = n_bins
+            if q > 0:   # the PHAT scale: sum_k |G_k| = n_bins
                 gw *= n_bins / np.abs(gw).sum()
             r = np.fft.irfft(gw, n_fft)
             top = lags[np.argmax(r[lags])]
@@ -273,6 +281,8 @@ def test_the_compiled_frame_is_the_module_docs_formulas(beta):
         np.testing.assert_allclose(gcc._smooth, sm, rtol=1e-4, atol=1e-4 * np.abs(sm).max())
         np.testing.assert_allclose(gcc._noise, phi, rtol=1e-4, atol=1e-4 * max(np.abs(phi).max(), 1e-12))
     assert 0 < sum(active) < len(active)
+    if near_noise:   # both ends and the ramp between them were taken
+        assert min(shares) == 0.0 and max(shares) == 1.0 and any(0.0 < s < 1.0 for s in shares)
 
 
 @pytest.mark.parametrize("bad", ["nan_imag", "inf_real", "zeros"])
@@ -324,7 +334,8 @@ def test_frames_without_peaks_move_the_averages_exactly_as_frames_with_them(weig
     np.testing.assert_array_equal(other.noise_peaks()[2], every.noise_peaks()[2])
 
 
-def test_the_engine_option_reaches_the_tracker_gcc_and_a_bad_value_is_one_sentence(tmp_path):
+@pytest.mark.parametrize("near_noise", [False, True])
+def test_the_engine_option_reaches_the_tracker_gcc_and_a_bad_value_is_one_sentence(tmp_path, near_noise):
     from pathlib import Path
 
     from stream.config import EngineConfig
@@ -334,8 +345,12 @@ def test_the_engine_option_reaches_the_tracker_gcc_and_a_bad_value_is_one_senten
         EngineConfig(gcc_phat_beta=1.5).resolved(16000.0)
     assert EngineConfig().gcc_phat_beta == 1.0   # PHAT by default (docs/tracking-log.md, "Tried 2026-11-30")
     fixture = Path(__file__).resolve().parents[2] / "replay_fixtures" / "two_talkers"
-    outcome = run_replay([fixture], tmp_path / "o", config=EngineConfig(gcc_phat_beta=0.9, plots=False,
-                                                                         progress=False))
+    assert EngineConfig().gcc_phat_beta_near_noise is False
+    with pytest.raises(ConfigError, match="gcc_phat_beta_near_noise"):
+        EngineConfig(gcc_phat_beta_near_noise="yes").resolved(16000.0)
+    outcome = run_replay([fixture], tmp_path / "o", config=EngineConfig(
+        gcc_phat_beta=0.9, gcc_phat_beta_near_noise=near_noise, plots=False, progress=False))
     assert outcome.pipeline.gcc.phat_beta == 0.9
+    assert outcome.pipeline.gcc.phat_beta_near_noise is near_noise
     enh = outcome.report["metrics"]["enhancement"]
     assert enh["engine"]["si_sdr_db"] > enh["best_single_device"]["si_sdr_db"] + 2.0
