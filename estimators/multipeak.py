@@ -423,7 +423,7 @@ class NoiseAwareGcc:
         With ``phat_beta`` < 1: each pair's exponent moves from ``phat_beta`` to 1 (PHAT) as its frame's cross
         power rises from ``FAST_SNR_DB[0]`` to ``FAST_SNR_DB[1]`` above the noise cross power: the weighting
         where the noise is, PHAT where the pair stands clear of it (a real room's coherent low-frequency
-        reflections are louder bins too).
+        reflections are louder bins too). Only with "subtract": "phat" takes ``phat_beta`` on every pair.
     """
 
     def __init__(self, n_channels: int, *, n_fft: int, sample_rate_hz: float, hop_s: float,
