@@ -423,7 +423,7 @@ class NoiseAwareGcc:
         With ``phat_beta`` < 1: each pair's exponent moves from ``phat_beta`` to 1 (PHAT) as its frame's cross
         power rises from ``FAST_SNR_DB[0]`` to ``FAST_SNR_DB[1]`` above the noise cross power: the weighting
         where the noise is, PHAT where the pair stands clear of it (a real room's coherent low-frequency
-        reflections are louder bins too). Only with "subtract": "phat" takes ``phat_beta`` on every pair.
+        reflections are louder bins too). Only with "subtract" (other weightings raise ValueError).
     """
 
     def __init__(self, n_channels: int, *, n_fft: int, sample_rate_hz: float, hop_s: float,
@@ -445,6 +445,12 @@ class NoiseAwareGcc:
             raise ValueError(f"{weighting=} must be one of {', '.join(_WEIGHTINGS)}")
         if not (np.isfinite(phat_beta) and 0 < phat_beta <= 1):
             raise ValueError(f"{phat_beta=} must be in (0, 1]")
+        if phat_beta != 1 and weighting == "subtract-snr":
+            raise ValueError(f"{phat_beta=} has no effect with weighting='subtract-snr' (its per-bin SNR weight "
+                             "takes the place of PHAT-beta): use 'subtract' or 'phat', or phat_beta=1")
+        if phat_beta_near_noise and weighting != "subtract":
+            raise ValueError(f"phat_beta_near_noise needs weighting='subtract', not {weighting!r}: it measures "
+                             "each pair against the noise cross power that 'subtract' removes")
         self.n_channels = int(n_channels)
         self.n_fft = int(n_fft)
         self.n_bins = self.n_fft // 2 + 1

@@ -144,6 +144,13 @@ class EngineConfig:
             raise ConfigError(f"gcc_phat_beta_near_noise={self.gcc_phat_beta_near_noise!r} must be true or false")
         if self.gcc_weighting not in ("subtract", "subtract-snr", "phat"):
             raise ConfigError(f"gcc_weighting={self.gcc_weighting!r} must be 'subtract', 'subtract-snr' or 'phat'")
+        if self.gcc_phat_beta != 1 and self.gcc_weighting == "subtract-snr":
+            raise ConfigError(f"gcc_phat_beta={self.gcc_phat_beta} has no effect with gcc_weighting='subtract-snr' "
+                              "(its per-bin SNR weight takes the place of PHAT-beta): use 'subtract' or 'phat', or "
+                              "gcc_phat_beta=1")
+        if self.gcc_phat_beta_near_noise and self.gcc_weighting != "subtract":
+            raise ConfigError(f"gcc_phat_beta_near_noise needs gcc_weighting='subtract', not {self.gcc_weighting!r}: "
+                              "it measures each pair against the noise cross power that 'subtract' removes")
         words = str(self.target).split()
         if not words or words[0] not in ("active-talker", "nearest") or (words[0] == "nearest") != (len(words) == 2) \
                 or (words[0] == "active-talker" and len(words) != 1):

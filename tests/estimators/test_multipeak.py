@@ -354,3 +354,23 @@ def test_the_engine_option_reaches_the_tracker_gcc_and_a_bad_value_is_one_senten
     assert outcome.pipeline.gcc.phat_beta_near_noise is near_noise
     enh = outcome.report["metrics"]["enhancement"]
     assert enh["engine"]["si_sdr_db"] > enh["best_single_device"]["si_sdr_db"] + 2.0
+
+
+@pytest.mark.parametrize("weighting, beta, near_noise, says", [
+    ("subtract-snr", 0.9, False, "no effect with"),          # its SNR weight replaces PHAT-beta
+    ("phat", 0.9, True, "needs"),                           # no noise cross power removed to measure against
+    ("subtract-snr", 0.9, True, "no effect with"),
+])
+def test_a_weighting_that_would_ignore_the_beta_options_is_refused_in_one_sentence(weighting, beta, near_noise, says):
+    from stream.config import EngineConfig
+    from stream.errors import ConfigError
+    with pytest.raises(ConfigError, match=says) as err:
+        EngineConfig(gcc_weighting=weighting, gcc_phat_beta=beta, gcc_phat_beta_near_noise=near_noise).resolved(16000.0)
+    assert str(err.value).count(". ") == 0 and "gcc_weighting" in str(err.value)
+    with pytest.raises(ValueError, match=says):
+        NoiseAwareGcc(4, n_fft=512, sample_rate_hz=16000.0, hop_s=0.008, max_tdoa_s=0.01, weighting=weighting,
+                      phat_beta=beta, phat_beta_near_noise=near_noise)
+    # the combinations that work as documented are taken
+    EngineConfig(gcc_weighting="phat", gcc_phat_beta=0.9).resolved(16000.0)
+    EngineConfig(gcc_weighting="subtract-snr").resolved(16000.0)
+    EngineConfig(gcc_phat_beta=0.9, gcc_phat_beta_near_noise=True).resolved(16000.0)
