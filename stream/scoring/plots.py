@@ -15,7 +15,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 from matplotlib.patches import Patch  # noqa: E402
 import numpy as np  # noqa: E402
 
-__all__ = ["plot_toa_tracks", "plot_segmental_sar", "plot_source_tracks", "label_over_time"]
+__all__ = ["plot_toa_tracks", "outside_view_note", "plot_segmental_sar", "plot_source_tracks", "label_over_time"]
 
 _DPI = 120
 
@@ -26,6 +26,18 @@ def _save(fig, path) -> Path:
     fig.savefig(path, dpi=_DPI)
     plt.close(fig)
     return path
+
+
+def outside_view_note(y_ms: np.ndarray, lim_ms: float) -> str:
+    """What a TOA panel cannot show: the share of its frames whose estimate ``y_ms`` (ms from the panel's
+    centre) lies beyond ``±lim_ms``, and their range; "" when every finite estimate is in view."""
+    y = np.asarray(y_ms, dtype=float)
+    y = y[np.isfinite(y)]
+    far = y[np.abs(y) > lim_ms]
+    if not far.size:
+        return ""
+    return (f"estimate beyond this view in {100.0 * far.size / y.size:.0f} % of frames "
+            f"({far.min():+.1f} to {far.max():+.1f} ms)")
 
 
 def plot_toa_tracks(
@@ -43,7 +55,9 @@ def plot_toa_tracks(
 
     One colour per device ``1..M-1`` (device 0 is the reference, always 0, and is skipped).
     Estimates are small dots joined by a thin line, the ground truth a solid black line, and gated
-    (rejected as clutter) frames are marked with a grey ``x``.
+    (rejected as clutter) frames are marked with a grey ``x``. With ground truth, each panel's view is the
+    truth's (so that errors of a fraction of a millisecond show); estimates beyond it are drawn as triangles at
+    the edge and the panel says in how many frames and by how much (:func:`outside_view_note`).
 
     Parameters
     ----------
@@ -119,7 +133,22 @@ def plot_toa_tracks(
         if true is not None:
             ax.plot(tt, (true[:, i] - centre) * 1e3, "-", color="k", lw=1.4, label="ground truth")
             spread = np.nanmax(np.abs(true[:, i] - centre)) * 1e3
-            ax.set_ylim(-max(0.5, 3 * spread), max(0.5, 3 * spread))
+            lim = max(0.5, 3 * spread)
+            ax.set_ylim(-lim, lim)
+            # the view is the truth's: estimates beyond it are drawn at its edge and said, not left out of sight
+            y = (toa[:, i] - centre) * 1e3
+            label = "estimate beyond the view"
+            for side, marker in ((1, "^"), (-1, "v")):
+                far = side * y > lim
+                if far.any():
+                    ax.plot(t[far], np.full(int(far.sum()), side * 0.94 * lim), marker, color=c, ms=3.5, label=label)
+                    label = None
+            note = outside_view_note(y, lim)
+            if note:   # on the side the edge markers leave free
+                top = int((y < -lim).sum()) >= int((y > lim).sum())
+                ax.text(0.01, 0.96 if top else 0.04, note, transform=ax.transAxes, fontsize=7, color="0.15",
+                        va="top" if top else "bottom",
+                        bbox={"facecolor": "white", "alpha": 0.8, "edgecolor": "none", "pad": 1.5})
         ax.set_ylabel(f"{names[i]}\n{centre * 1e3:+.2f} ms", fontsize=8)
         ax.grid(True, alpha=0.3)
         if i == 1:

@@ -272,3 +272,23 @@ def test_sources_plot_draws_a_track_in_the_label_it_had_at_each_time(tmp_path):
     path = plot_source_tracks(tmp_path / "sources.png", tracks=tracks, time_s=t,
                               steered_id=np.where((t >= 2.0) & (t < 3.5), 4, 5))
     assert path.stat().st_size > 10_000
+
+
+def test_toa_plot_says_where_an_estimate_is_beyond_the_truths_view(tmp_path):
+    """The TOA panel's view is the truth's (fractions of a millisecond); an estimate 12 ms off (a coarse
+    alignment on the wrong peak) is drawn at the view's edge and the panel says in how many frames and how far,
+    instead of showing only the truth."""
+    from stream.scoring.plots import outside_view_note, plot_toa_tracks
+
+    t = np.arange(0.0, 4.0, 0.016)
+    true = np.array([0.0, -0.518, 0.295])
+    est = np.tile(true, (len(t), 1))
+    est[t >= 1.0, 1] -= 0.0127                   # device 1: 12.7 ms early from 1 s on (75 % of the frames)
+    est[:, 2] += 1e-4                            # device 2: within the view
+    assert outside_view_note(1e3 * (est[:, 2] - true[2]), 0.5) == ""
+    note = outside_view_note(1e3 * (est[:, 1] - true[1]), 0.5)
+    assert note == "estimate beyond this view in 75 % of frames (-12.7 to -12.7 ms)"
+    assert outside_view_note(np.array([np.nan, 0.1]), 0.5) == ""
+    path = plot_toa_tracks(tmp_path / "toa.png", time_s=t, toa_s=est, true_toa_s=true,
+                           device_names=["a", "b", "c"])
+    assert path.stat().st_size > 10_000
