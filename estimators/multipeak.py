@@ -324,7 +324,8 @@ def _frame(spectra, valid, old, old_usable, noise, smooth, noise_l1, cross, corr
     fast = (np.float32(params[_P_SMOOTH_FAST]), params[_P_FAST_LO_DB], params[_P_FAST_HI_DB])
     peaks = params[_P_PEAKS] != 0.0   # False: the averages only, no weighting, correlation or peaks
     beta = params[_P_BETA]
-    beta_near_noise = params[_P_BETA_NEAR_NOISE] != 0.0 and beta != 1.0 and mode != 0
+    # the exponent only weighs a frame whose peaks are searched: no SNR share (nor |X_i|) for the others
+    beta_near_noise = params[_P_BETA_NEAR_NOISE] != 0.0 and beta != 1.0 and mode != 0 and peaks
     for i in range(m):
         usable[i] = _channel_ok(spec[i], valid[i])
     adapt = fast[0] > b and mode != 0   # the average's time constant follows each pair's SNR this frame

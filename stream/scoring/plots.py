@@ -137,15 +137,15 @@ def plot_toa_tracks(
             ax.set_ylim(-lim, lim)
             # the view is the truth's: estimates beyond it are drawn at its edge and said, not left out of sight
             y = (toa[:, i] - centre) * 1e3
+            above, below = y > lim, y < -lim
             label = "estimate beyond the view"
-            for side, marker in ((1, "^"), (-1, "v")):
-                far = side * y > lim
+            for far, side, marker in ((above, 1, "^"), (below, -1, "v")):
                 if far.any():
                     ax.plot(t[far], np.full(int(far.sum()), side * 0.94 * lim), marker, color=c, ms=3.5, label=label)
                     label = None
             note = outside_view_note(y, lim)
             if note:   # on the side the edge markers leave free
-                top = int((y < -lim).sum()) >= int((y > lim).sum())
+                top = int(below.sum()) >= int(above.sum())
                 ax.text(0.01, 0.96 if top else 0.04, note, transform=ax.transAxes, fontsize=7, color="0.15",
                         va="top" if top else "bottom",
                         bbox={"facecolor": "white", "alpha": 0.8, "edgecolor": "none", "pad": 1.5})
