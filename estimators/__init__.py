@@ -8,6 +8,7 @@ from .conventions import SPEED_OF_SOUND_M_S, pair_matrix, pairs, ppm_to_ratio, s
 from .gcc import GccPhat, gcc_phat, gcc_phat_spectra
 from .toa import FixedLagKalmanToa, KalmanToa, PinvToa, SubsetToa, ToaEstimator
 from .multipeak import NoiseAwareGcc
+from .drift import DriftMeter
 from .tracks import SourceTracker, Track, within_but_one
 from .chirps import ChirpDetector, ChirpTdoas, detect_chirps, extract_tdoas, gcc_phat_delays, linear_chirp, matched_filter
 from .hybrid_tdoa import (CalibrationResult, CrlbResult, HybridTdoaProblem, MicFrameScene, NoiseLevels, Scene,
@@ -53,6 +54,7 @@ __all__ = [
     "KalmanToa",
     "FixedLagKalmanToa",
     "NoiseAwareGcc",
+    "DriftMeter",
     "SourceTracker",
     "Track",
     "ChirpDetector",

@@ -506,6 +506,9 @@ class NoiseAwareGcc:
         self._all_valid = np.ones(self.n_channels, np.bool_)
         self.n_noise_frames = 0.0   # effective number of non-speech frames averaged so far
         self._noise_weight = 0.0    # 1 - prod(1 - a_k): the weight the average has gathered (bias correction)
+        self._hops = 0              # frames processed
+        self._noise_hop = 0.0       # the noise average's time: the weighted mean of its frames' (hops)
+        self._hop_s = float(hop_s)
         self._params[_P_NOISE_SCALE] = 0.0
 
     def reset(self) -> None:
@@ -607,12 +610,57 @@ class NoiseAwareGcc:
             self._ring_usable[slot] = self._usable
             self._ring_p[slot] = p
             self._ring_pos = (slot + 1) % d
+        self._hops += 1
         if update_noise:
             a = self._params[_P_ALPHA] * (1.0 - min(max(p_update, 0.0), 1.0))
+            if a > 0.0:   # the average's time: the weighted mean of its frames' (the one joining is d hops old)
+                w = (1.0 - a) * self._noise_weight
+                self._noise_hop = (w * self._noise_hop + a * (self._hops - d)) / (w + a)
             self.n_noise_frames = (1.0 - a) * self.n_noise_frames + a / self._params[_P_ALPHA]
             self._noise_weight += a * (1.0 - self._noise_weight)
             self._params[_P_NOISE_SCALE] = 1.0 / self._noise_weight if self._noise_weight > 1e-6 else 0.0
         return peak_tdoa, peak_value
+
+    @property
+    def noise_age_s(self) -> float:
+        """How long ago, on average, the frames of the noise average were taken (seconds; 0 before any)."""
+        return (self._hops - self._noise_hop) * self._hop_s if self._noise_weight > 0 else 0.0
+
+    @property
+    def short_time_cross_power(self) -> np.ndarray:
+        """The short-time average of every pair's cross power ``X_i X_j^*`` (``smoothing_time_constant_s``;
+        the last frame's when 0), shape (n_pairs, n_bins), complex64: a view, valid until the next frame."""
+        return self._smooth
+
+    def shift_noise(self, delta_toa_s: np.ndarray, *, short_time: bool = True) -> None:
+        """Move the noise cross-power spectra by a known change of the channels' relative TOAs.
+
+        The noise average holds the noise's delays of the frames it averaged: when clock drift moves them (at
+        100 ppm, 0.5 ms in 5 s of speech, while the average only takes non-speech frames) or the aligner moves a
+        channel, the removal would subtract the noise where it was, and leave it where it is. Each pair's
+        spectra are turned by the pair's change, ``exp(-2 pi j f (d_i - d_j))``, as that of a source moved by it.
+
+        Parameters
+        ----------
+        delta_toa_s : ndarray, shape (n_channels,)
+            Change of each channel's TOA (seconds); a common part changes nothing.
+        short_time : bool
+            Turn the short-time average (:attr:`short_time_cross_power`) too (a re-alignment); False for clock
+            drift, whose rotation a :class:`~estimators.DriftMeter` measures there.
+        """
+        d = np.asarray(delta_toa_s, dtype=np.float64)
+        if d.shape != (self.n_channels,):
+            raise ValueError(f"delta_toa_s.shape={d.shape} must be ({self.n_channels},)")
+        if not np.isfinite(d).all() or not np.any(d != d[0]):
+            return
+        f = np.arange(self.n_bins) * (2.0 * np.pi * self.sample_rate_hz / self.n_fft)
+        i, j = np.triu_indices(self.n_channels, 1)
+        rot = np.exp(-1j * np.outer(d[i] - d[j], f)).astype(np.complex64)
+        self._noise *= rot
+        if short_time:
+            self._smooth *= rot
+        if self.noise_delay_frames:   # the frames still to join the noise average
+            self._ring *= np.exp(-1j * np.outer(d, f)).astype(np.complex64)[None]
 
     def noise_peaks(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """N best peaks of the PHAT-weighted noise cross-power spectra: the persistent noise sources.

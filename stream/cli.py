@@ -39,6 +39,9 @@ def _add_engine_options(p: argparse.ArgumentParser) -> None:
     g.add_argument("--gcc-phat-beta-near-noise", action="store_const", const=True,
                    help="with --gcc-phat-beta below 1: that exponent only on the pairs near the noise, PHAT on "
                         "those that stand 30 dB clear of it")
+    g.add_argument("--no-noise-drift", dest="noise_follows_drift", action="store_const", const=False,
+                   help="keep the noise cross-power spectra where they were averaged (by default they follow the "
+                        "clocks' drift, measured from the cross-power spectra: report.json's spectra_drift_ppm)")
     g.add_argument("--n-peaks", type=int, help="GCC-PHAT peaks kept per pair for the tracker (default 5)")
     g.add_argument("--gcc-smoothing-s", type=float,
                    help="short-time average of the cross-power spectra before the noise removal, seconds "

@@ -70,6 +70,7 @@ class EngineConfig:
     noise_delay_s: float = 0.25                    # a frame joins the noise average this late, if no speech came since
     gcc_smoothing_s: float = 0.1                   # short-time cross-power average before the noise removal (0: off)
     gcc_fast_smoothing_s: float = 0.03             # ... where the frame stands 15-30 dB above the noise (at most gcc_smoothing_s)
+    noise_follows_drift: bool = True               # the noise cross-power spectra follow the clocks' measured drift
     track_tdoa_std_s: float = 1e-4                 # each track's TDOA noise
     switch_ratio: float = 1.5                      # activity ratio that moves the beam to another talker
     activity_time_constant_s: float = 0.4          # talker activity average over speech frames
@@ -140,6 +141,8 @@ class EngineConfig:
             raise ConfigError(f"estimator={self.estimator!r} must be one of tracks, subset, pinv, kalman, smoother")
         if not (math.isfinite(self.gcc_phat_beta) and 0 < self.gcc_phat_beta <= 1):
             raise ConfigError(f"gcc_phat_beta={self.gcc_phat_beta} must be in (0, 1] (1: plain PHAT)")
+        if not isinstance(self.noise_follows_drift, bool):
+            raise ConfigError(f"noise_follows_drift={self.noise_follows_drift!r} must be true or false")
         if not isinstance(self.gcc_phat_beta_near_noise, bool):
             raise ConfigError(f"gcc_phat_beta_near_noise={self.gcc_phat_beta_near_noise!r} must be true or false")
         if self.gcc_weighting not in ("subtract", "subtract-snr", "phat"):

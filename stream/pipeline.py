@@ -40,6 +40,8 @@ log = logging.getLogger(__name__)
 
 HEARD_S = 0.25        # a track hit this recently is heard (sources.png draws the rest as prediction)
 RECENTRE_FRAMES = 24   # frames whose median fine TOA decides a re-centring of the coarse alignment
+DRIFT_EVERY_HOPS = 4    # the drift meter takes the short-time cross power every this many hops
+DRIFT_STEP_S = 1e-5     # the noise spectra follow the drift in steps of at most this (0.06 rad at 1 kHz)
 MAX_OFFSET_STD_S = 1e-3   # a calibrated clock offset moves the coarse alignment only when this certain
 
 
@@ -296,6 +298,10 @@ class Pipeline:
                                            hop_samples=config.hop_samples)
         self.gcc = None
         self.estimator = None
+        self.drift_meter: estimators.DriftMeter | None = None
+        self._drift_phase = 0
+        self._drift_moved_s: np.ndarray | None = None   # drift not yet turned into the noise spectra
+        self._drift_rate_used: np.ndarray | None = None   # the meter's rate they were last turned at
         self.tracker: estimators.SourceTracker | None = None
         self.speech = None
         self._steering = steering
@@ -312,6 +318,9 @@ class Pipeline:
                 fast_smoothing_time_constant_s=min(config.gcc_fast_smoothing_s, config.gcc_smoothing_s),
                 noise_delay_s=config.noise_delay_s, phat_beta=config.gcc_phat_beta,
                 phat_beta_near_noise=config.gcc_phat_beta_near_noise)
+            # clock drift measured from the pairs' cross-power spectra; the noise spectra follow it (below)
+            self.drift_meter = (estimators.DriftMeter(self.n_devices, n_fft=config.frame_samples, sample_rate_hz=fs)
+                                if config.noise_follows_drift else None)
             self.estimator = self.tracker = make_estimator(config, self.n_devices, device_names)
             if speech is None:
                 from .speech import make_speech_presence
@@ -481,6 +490,8 @@ class Pipeline:
             # every hop moves the GCC's averages; its peaks are searched on the tracker's measurements only
             peaks = self.gcc.process(spectra, speech_probability=p_speech, valid=block.valid,
                                      raw=p_speech < self.tracker.speech_threshold, peaks=measure)
+            if self.drift_meter is not None:
+                self._follow_drift(time_s)
             if measure:
                 fine, tdoa, gated, track_id, fallback = self._track(*peaks, block, time_s, p_speech)
             else:   # between measurements the last decision holds (the look-ahead takes its TOA along its rate;
@@ -738,17 +749,46 @@ class Pipeline:
         if moved:
             self._recent.clear()
 
+    def _follow_drift(self, time_s: float) -> None:
+        """Clock drift moves every source's TDOA, the noise's too, while the noise average only takes
+        non-speech frames: over seconds of speech it would subtract the noise where it was. The drift meter takes
+        the short-time cross power every ``DRIFT_EVERY_HOPS`` hops; the noise spectra are turned by the drift
+        since they were last turned once a device has moved by ``DRIFT_STEP_S``. A new measurement turns them by
+        the change of rate times the age of the average's frames (turned at the old rate since they were taken;
+        the first measurement comes after 2 s of stream, when nothing had turned them)."""
+        hop_s = self.config.hop_samples / self.config.working_rate_hz
+        self._drift_phase = (self._drift_phase + 1) % DRIFT_EVERY_HOPS
+        if self._drift_phase == 0:
+            self.drift_meter.add(self.gcc.short_time_cross_power, time_s, DRIFT_EVERY_HOPS * hop_s)
+        rate = self.drift_meter.rate_s_per_s
+        if rate is None:
+            return
+        if self._drift_moved_s is None:
+            self._drift_moved_s = np.zeros(self.n_devices)
+            self._drift_rate_used = np.zeros(self.n_devices)
+        if rate is not self._drift_rate_used:
+            # a new measurement: the average's frames were turned at the old rate since they were taken
+            self._drift_moved_s += (rate - self._drift_rate_used) * self.gcc.noise_age_s
+            self._drift_rate_used = rate
+        self._drift_moved_s += rate * hop_s
+        if np.abs(self._drift_moved_s).max() >= DRIFT_STEP_S:
+            self.gcc.shift_noise(self._drift_moved_s, short_time=False)   # the meter measures the short-time one
+            self._drift_moved_s[:] = 0.0
+
     def _follow_offsets(self, block: Block) -> None:
         """When the aligner moved a device, move the estimator's state with it."""
         delta = block.offsets_samples - self._last_offsets
         self._last_offsets = block.offsets_samples.copy()
         if self.estimator is None or not delta.any() or block.seq == 0:
             return
+        delta_s = delta / self.config.working_rate_hz
+        if self.drift_meter is not None:   # the noise did not move: its spectra are moved with the alignment
+            self.gcc.shift_noise(-delta_s)
+            self.drift_meter.shift(-delta_s)
         if block.corrected is not None:   # the old alignment was wrong: what was tracked under it means nothing
             self.estimator.reset()
             self._recent.clear()
             return
-        delta_s = delta / self.config.working_rate_hz
         self.estimator.shift(-(delta_s - delta_s[0]))
 
     # results ---------------------------------------------------------------------------------

@@ -411,6 +411,11 @@ def _finalise(report, out, cfg, pipeline, layout, fixture, names, collector, t_w
             "late_blocks": pipeline.aligner.n_late_blocks.tolist(),
             "final_channel_weights": np.asarray(pipeline.das.channel_weights, float).tolist(),
             "observed_drift_ppm": _observed_drift(pipeline).tolist(),
+            # measured from the rotation of the pairs' cross-power spectra (the tracker; followed by its noise
+            # spectra); None before two blocks
+            "spectra_drift_ppm": (None if getattr(pipeline, "drift_meter", None) is None
+                                  or pipeline.drift_meter.rate_s_per_s is None
+                                  else np.round(1e6 * pipeline.drift_meter.rate_s_per_s, 2).tolist()),
         }
         active = [d for d in report.get("devices", []) if d["usable"]]
         for channel, counters, checker in zip(layout.channels, pipeline.device_counters, pipeline.checkers):

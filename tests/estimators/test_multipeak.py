@@ -374,3 +374,59 @@ def test_a_weighting_that_would_ignore_the_beta_options_is_refused_in_one_senten
     EngineConfig(gcc_weighting="phat", gcc_phat_beta=0.9).resolved(16000.0)
     EngineConfig(gcc_weighting="subtract-snr").resolved(16000.0)
     EngineConfig(gcc_phat_beta=0.9, gcc_phat_beta_near_noise=True).resolved(16000.0)
+
+
+def test_the_noise_spectra_moved_with_a_channel_keep_the_removal_on_the_noise():
+    """A channel whose signals all arrive 6 samples later (clock drift over seconds, or the aligner moving it):
+    the noise average still holds the old delays; moved by :meth:`shift_noise` it removes the noise again, and
+    its peaks move by the pairs' change."""
+    x, active, d_noise, d_talk = _two_sources(3, seconds=8.0)
+    half = (len(active) // 2) * HOP
+    later = x.copy()
+    later[6:, 2] = x[:-6, 2]
+    delta = np.zeros(x.shape[1])
+    delta[2] = 6 / FS
+    y_talk = _toa_to_tdoa_samples(d_talk + np.round(delta * FS).astype(int))
+    shares = {}
+    for move in (False, True):
+        m = x.shape[1]
+        stft = beamform.StreamingStft(m, frame_samples=N_FFT, hop_samples=HOP)
+        gcc = NoiseAwareGcc(m, n_fft=N_FFT, sample_rate_hz=FS, hop_s=HOP / FS, max_tdoa_s=0.004,
+                            weighting="subtract")
+        top = []
+        for k in range(len(active)):
+            if k * HOP == half:
+                before = gcc.noise_peaks()[0][:, 0].copy()
+                if move:
+                    gcc.shift_noise(delta)
+                    after = gcc.noise_peaks()[0][:, 0]
+                    assert np.allclose((after - before) * FS, _toa_to_tdoa_samples(delta * FS), atol=0.05)
+            src = x if k * HOP < half else later
+            # speech all through the second half: the noise average learns nothing new there
+            p = float(active[k]) if k * HOP < half else 1.0
+            peak_tdoa, _ = gcc.process(stft.process(src[k * HOP:(k + 1) * HOP]), speech_probability=p)
+            if k * HOP >= half + N_FFT and active[k]:
+                top.append(peak_tdoa[:, 0] * FS)
+        shares[move] = float(np.mean(np.abs(np.array(top) - y_talk) < 0.6))
+    assert shares[True] > 0.6 and shares[True] > shares[False] + 0.2, shares
+    with pytest.raises(ValueError, match="delta_toa_s.shape"):
+        gcc.shift_noise(np.zeros(2))
+
+
+def test_the_noise_average_knows_how_old_its_frames_are():
+    """The pipeline turns the noise average by a new drift measurement times the age of its frames: non-speech
+    frames keep the age near the average's time constant (plus the frames' wait), speech frames let it grow."""
+    m = 3
+    rng = np.random.default_rng(5)
+    stft = beamform.StreamingStft(m, frame_samples=N_FFT, hop_samples=HOP)
+    gcc = NoiseAwareGcc(m, n_fft=N_FFT, sample_rate_hz=FS, hop_s=HOP / FS, max_tdoa_s=0.004,
+                        noise_time_constant_s=1.0, noise_delay_s=0.25)
+    assert gcc.noise_age_s == 0.0
+    hops_s = int(FS / HOP)
+    for k in range(8 * hops_s):   # 8 s of non-speech, then 2 s of speech
+        spectra = stft.process(rng.standard_normal((HOP, m)).astype(np.float32))
+        gcc.process(spectra, speech_probability=0.0 if k < 6 * hops_s else 1.0)
+        if k == 6 * hops_s - 1:
+            quiet_age = gcc.noise_age_s
+    assert 1.0 < quiet_age < 1.5, quiet_age   # the time constant (1 s) and the wait (0.25 s)
+    assert abs(gcc.noise_age_s - (quiet_age + 2.0)) < 0.1, gcc.noise_age_s

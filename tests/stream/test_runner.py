@@ -343,3 +343,7 @@ def test_the_tracker_follows_a_drifting_clock_on_speech_and_the_report_states_it
     assert out.report["settings"]["estimator"] == "tracks"
     drift = out.report["stream"]["observed_drift_ppm"]
     assert drift[0] == 0.0 and abs(drift[1] - 100.0) < 5.0 and abs(drift[2]) < 5.0, drift
+    # the drift the noise spectra follow, measured from the cross-power spectra's rotation, without the tracks
+    spectra = out.report["stream"]["spectra_drift_ppm"]
+    print(spectra)
+    assert spectra[0] == 0.0 and abs(spectra[1] - 100.0) < 5.0 and abs(spectra[2]) < 5.0, spectra
