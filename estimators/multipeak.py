@@ -54,6 +54,7 @@ from typing import Literal
 import numba
 import numpy as np
 
+from .conventions import pairs
 from .numba_tools import all_finite, borrowed
 
 __all__ = ["NoiseAwareGcc", "Weighting"]
@@ -509,6 +510,8 @@ class NoiseAwareGcc:
         self._hops = 0              # frames processed
         self._noise_hop = 0.0       # the noise average's time: the weighted mean of its frames' (hops)
         self._hop_s = float(hop_s)
+        self._omega = np.arange(self.n_bins) * (2.0 * np.pi * self.sample_rate_hz / self.n_fft)   # rad/s per bin
+        self._pair_idx = pairs(self.n_channels)
         self._params[_P_NOISE_SCALE] = 0.0
 
     def reset(self) -> None:
@@ -653,14 +656,13 @@ class NoiseAwareGcc:
             raise ValueError(f"delta_toa_s.shape={d.shape} must be ({self.n_channels},)")
         if not np.isfinite(d).all() or not np.any(d != d[0]):
             return
-        f = np.arange(self.n_bins) * (2.0 * np.pi * self.sample_rate_hz / self.n_fft)
-        i, j = np.triu_indices(self.n_channels, 1)
-        rot = np.exp(-1j * np.outer(d[i] - d[j], f)).astype(np.complex64)
+        i, j = self._pair_idx.T
+        rot = np.exp(-1j * np.outer(d[i] - d[j], self._omega)).astype(np.complex64)
         self._noise *= rot
         if short_time:
             self._smooth *= rot
         if self.noise_delay_frames:   # the frames still to join the noise average
-            self._ring *= np.exp(-1j * np.outer(d, f)).astype(np.complex64)[None]
+            self._ring *= np.exp(-1j * np.outer(d, self._omega)).astype(np.complex64)[None]
 
     def noise_peaks(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """N best peaks of the PHAT-weighted noise cross-power spectra: the persistent noise sources.

@@ -413,8 +413,7 @@ def _finalise(report, out, cfg, pipeline, layout, fixture, names, collector, t_w
             "observed_drift_ppm": _observed_drift(pipeline).tolist(),
             # measured from the rotation of the pairs' cross-power spectra (the tracker; followed by its noise
             # spectra); None before two blocks
-            "spectra_drift_ppm": (None if getattr(pipeline, "drift_meter", None) is None
-                                  or pipeline.drift_meter.rate_s_per_s is None
+            "spectra_drift_ppm": (None if pipeline.drift_meter is None or pipeline.drift_meter.rate_s_per_s is None
                                   else np.round(1e6 * pipeline.drift_meter.rate_s_per_s, 2).tolist()),
         }
         active = [d for d in report.get("devices", []) if d["usable"]]
