@@ -107,6 +107,8 @@ QUIET_S = 0.048                   # the steered talker unheard for this long (sp
 FAST_ACTIVITY_S = 0.1             # ... the one most active over about this long (speech frames)
 LOUDER_MIN_HITS = 15              # hits in speech frames and in the pauses before ``louder_ratio`` is applied,
 LOUDER_MAX_HITS = 50              # ... and in speech frames after which it is not (a talker's first second)
+PAUSE_FIRST_S = 0.5               # a noise track heard this long in the pauses before its first hit on a speech
+#                                   frame is a noise source first (:attr:`Track.pause_first`)
 
 
 def within_but_one(err_s: np.ndarray, within_s: float) -> np.ndarray:
@@ -326,6 +328,7 @@ class Track:
     hit_times_s: list = field(default_factory=list)   # recent hits of a tentative track
     quiet_born: bool = False         # a tentative noise source, born on a non-speech frame
     quiet_origin: bool = False       # a noise source found on non-speech frames (updated on them)
+    quiet_there_s: float = 0.0       # seconds of non-speech frames its peaks were there before its first speech hit
     quiet_seen: int = 0              # its non-speech frames since birth, and its hits in them
     quiet_hits: int = 0
     quiet_value: float = 0.0         # mean matched peak height (as ``hit_value``) of its hits on non-speech frames
@@ -375,9 +378,17 @@ class Track:
                              for t, a, b, why in self.relabels]}
 
     @property
-    def talker_like(self) -> bool:
+    def pause_first(self) -> bool:
+        """Heard in the pauses for ``PAUSE_FIRST_S`` before its first hit on a speech frame: a noise source that
+        sounded before anybody spoke, not a talker's onset that leaked into the noise spectra."""
+        return self.quiet_there_s >= PAUSE_FIRST_S
+
+    def talker_like(self, noise_quiet_activity: float) -> bool:
         """So far more like a talker than a noise source: hit in speech frames more often than heard in the
-        pauses, or its peaks higher when somebody speaks than in the pauses."""
+        pauses, or its peaks higher when somebody speaks than in the pauses; a source heard in the pauses first
+        (:attr:`pause_first`) only once the pauses are quiet of it."""
+        if self.pause_first and self.quiet_activity >= noise_quiet_activity:
+            return False
         return self.speech_rate > self.quiet_activity or bool(
             self.n_speech_values and self.n_quiet_values and self.speech_value > self.quiet_value)
 
@@ -820,7 +831,8 @@ class SourceTracker:
         turns talker (seed 7's `s32`: it held the steered track off its talker for 0.15 s, −2 dB)."""
         if not self.anchor_noise_s:
             return self._no_noise_lag
-        cols = [self._predicted(n, speech=True)[0] for n in self.tracks if n.kind == "noise" and not n.talker_like]
+        cols = [self._predicted(n, speech=True)[0] for n in self.tracks
+                if n.kind == "noise" and not n.talker_like(self.noise_quiet_activity)]
         return np.stack(cols, axis=1) if cols else self._no_noise_lag
 
     def _take_over(self, time_s: float) -> None:
@@ -906,6 +918,8 @@ class SourceTracker:
             ok = (np.abs(peak_tdoa - pred[:, None]) <= gate[:, None]) & (peak_value >= self.min_peak_value)
             there = float(int((ok.any(axis=1) & pair_ok).sum()) >= min_pairs)
             t.quiet_activity += self.quiet_beta * (there - t.quiet_activity)
+            if there and not t.n_speech_values:
+                t.quiet_there_s += self.frame_period_s
             if t.kind == "noise" and there:
                 t.last_hit_s = self._time_s
             self._relabel(t)
@@ -918,8 +932,11 @@ class SourceTracker:
             t.relabel("noise", self._time_s, "it keeps sounding in the pauses")
             t.activity = 0.0
         elif t.kind == "noise" and t.speech_rate > max(self.noise_quiet_activity, t.quiet_activity) + 0.1 and (
-                not t.quiet_origin or t.quiet_activity < self.noise_quiet_activity):
-            # a source found sounding in the pauses turns talker only once the pauses are quiet of it
+                not (t.quiet_origin or t.pause_first) or t.quiet_activity < self.noise_quiet_activity):
+            # a source found sounding in the pauses (or found in the noise spectra and heard in the pauses before
+            # anybody spoke: seed 10's `s17`, a dish clatter heard 1.8 s before the talker, turned talker when it
+            # clattered through 0.5 s of speech, and the beam followed it for 2.2 s) turns talker only once the
+            # pauses are quiet of it
             t.relabel("speech", self._time_s, "heard when somebody speaks, quiet in the pauses")
             t.quiet_origin = False
         elif t.kind == "noise" and t.quiet_origin and self.louder_ratio is not None and t.speech_rate > 0.5 and \

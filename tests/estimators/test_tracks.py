@@ -726,3 +726,31 @@ def test_a_move_split_over_two_neighbouring_bins_is_weighed_like_staying():
     assert vote({c + 9: 1.9}) == (-1, -1)                      # 1.9 against 1.0: not twice
     assert vote({c + 9: 2.1}) == (1, c + 9)
     assert vote({c + 3: 1.2, c + 4: 1.2}) == (-1, -1)          # within the gate (4 bins): not a move
+
+
+def test_a_noise_heard_in_the_pauses_before_anybody_spoke_stays_noise_when_it_clatters_through_speech():
+    """Seed 10's `s17` (spread, dishes at 10 dB): the dish clatter sounds 1.8 s before the talker and is found in
+    the noise spectra. Later it clatters through half a second of speech, so its hit rate on speech frames rose
+    above its activity in the pauses, it turned talker and the beam followed it for 2.2 s. A source heard in the
+    pauses before its first hit on a speech frame (``PAUSE_FIRST_S``) turns talker only once the pauses are
+    quiet of it, as one found on the pauses' own peaks does."""
+    rng = np.random.default_rng(11)
+    tr = _tracker(quiet_confirm_s=None)   # noise sources from the noise spectra only, as in the scene
+    h = pair_matrix(M)
+    noise_spectra = (np.tile((h @ NOISE)[:, None], (1, 2)), np.tile([[0.5, 0.05]], (h.shape[0], 1)),
+                     np.zeros((h.shape[0], 64), np.float32))
+    steered, t = [], 0.0
+    for k in range(int(6.0 / DT)):
+        t = k * DT
+        speech = 1.5 <= t < 4.0 or t >= 4.5   # a pause of 0.5 s, the clatter in half of its frames
+        clatter = rng.random() < (0.9 if 3.0 <= t < 4.0 or t >= 4.5 else 0.5)
+        sources = ([(TALKER_A, 0.5)] if speech else []) + ([(NOISE, 0.6)] if clatter else [])
+        tdoa, value = _peaks(sources, rng)
+        steered.append(tr.update(tdoa, value, speech_probability=float(speech), usable=USABLE, time_s=t,
+                                 noise_peaks=lambda: noise_spectra).copy())
+    steered = np.array(steered)
+    noise = [x for x in tr.report()["tracks"] if np.max(np.abs(np.array(x["last_toa_s"]) - NOISE)) < W]
+    assert noise and all(x["kind"] == "noise" and not x["relabels"] for x in noise), noise
+    assert not np.all(np.abs(steered - NOISE) < W, axis=1).any()
+    at_talker = np.all(np.abs(steered - TALKER_A) < W, axis=1)
+    assert at_talker[int(2.0 / DT):].mean() > 0.95
