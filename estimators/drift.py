@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .conventions import pair_matrix, pairs
+from .conventions import delay_phasors, pair_matrix, pairs
 
 __all__ = ["DriftMeter"]
 
@@ -65,11 +65,17 @@ class DriftMeter:
         self.memory_blocks = int(memory_blocks)
         self.lag_blocks = int(lag_blocks)
         f = np.arange(n_fft // 2 + 1) * (sample_rate_hz / n_fft)
-        self._band = (f >= band_hz[0]) & (f <= band_hz[1])
+        band = np.flatnonzero((f >= band_hz[0]) & (f <= band_hz[1]))
+        self._band = slice(int(band[0]), int(band[-1]) + 1)   # a view of the spectra, not a copy
         self._f = f[self._band]
-        span = max_rate_s_per_s * block_s * (self.lag_blocks + 0.5)
-        self._grid = np.arange(-span, span + grid_step_s / 2, grid_step_s)
-        self._steer = np.exp(2j * np.pi * np.outer(self._f, self._grid)).astype(np.complex64)
+        # per gap of 1..lag_blocks blocks, the shifts drift can make in it (and half a block of margin: a block's
+        # time is its energy centroid), so that the nearer blocks are not searched over the farther ones' span
+        self._grids, self._steers = [], []
+        for lag in range(1, self.lag_blocks + 1):
+            span = max_rate_s_per_s * block_s * (lag + 0.5)
+            grid = np.arange(-span, span + grid_step_s / 2, grid_step_s)
+            self._grids.append(grid)
+            self._steers.append(np.exp(2j * np.pi * np.outer(self._f, grid)).astype(np.complex64))
         self._pairs = pairs(self.n_devices)
         self._H0 = pair_matrix(self.n_devices)[:, 1:]
         self._acc = None     # this block: the cross-power sum (n_pairs, band), its weights and weighted times
@@ -84,7 +90,7 @@ class DriftMeter:
         taken at ``time_s``, standing for ``dt_s`` seconds of the stream."""
         c = cross[:, self._band]
         if self._acc is None:
-            self._acc = np.zeros_like(c)
+            self._acc = np.zeros(c.shape, c.dtype)
             self._acc_w = np.zeros(c.shape[0])
             self._acc_tw = np.zeros(c.shape[0])
         self._acc += c
@@ -98,9 +104,8 @@ class DriftMeter:
     def shift(self, delta_toa_s: np.ndarray) -> None:
         """The channels were moved by a known change of their TOAs (a re-alignment, seconds, (n_devices,)):
         the blocks so far are turned with them, so the jump is not read as drift."""
-        d = np.asarray(delta_toa_s, np.float64)
-        rot = np.exp(-2j * np.pi * np.outer(d[self._pairs[:, 0]] - d[self._pairs[:, 1]], self._f)).astype(
-            np.complex64)
+        chan = delay_phasors(delta_toa_s, 2.0 * np.pi * self._f)
+        rot = chan[self._pairs[:, 0]] * np.conj(chan[self._pairs[:, 1]])
         if self._acc is not None:
             self._acc *= rot
         for block, _ in self._history:
@@ -110,19 +115,20 @@ class DriftMeter:
         cur = self._acc
         t = self._acc_tw / np.maximum(self._acc_w, 1e-30)
         self._acc, self._acc_t = None, 0.0
-        step = self._grid[1] - self._grid[0]
         r = np.arange(cur.shape[0])
-        for prev, t_prev in self._history:
+        for lag, (prev, t_prev) in zip(range(len(self._history), 0, -1), self._history):
+            grid = self._grids[lag - 1]
+            step = grid[1] - grid[0]
             gap = t - t_prev
             p = cur * np.conj(prev)
             p /= np.maximum(np.abs(p), 1e-30)
-            corr = (p @ self._steer).real / p.shape[1]   # (n_pairs, grid)
-            k = np.clip(np.argmax(corr, axis=1), 1, len(self._grid) - 2)
+            corr = (p @ self._steers[lag - 1]).real / p.shape[1]   # (n_pairs, grid)
+            k = np.clip(np.argmax(corr, axis=1), 1, len(grid) - 2)
             y0, y1, y2 = corr[r, k - 1], corr[r, k], corr[r, k + 1]
             den = y0 - 2 * y1 + y2
             frac = np.where(den < 0, 0.5 * (y0 - y2) / np.where(den < 0, den, -1.0), 0.0)
             ok = gap > 0.25 * self.block_s
-            rate = (self._grid[k] + frac * step) / np.where(ok, gap, 1.0)
+            rate = (grid[k] + frac * step) / np.where(ok, gap, 1.0)
             # a longer gap measures the rate more finely (a block's time is its energy centroid, known to a
             # fraction of the block): weighted by it
             self._est.append((rate, np.where(ok, np.maximum(y1, 0.0) * gap, 0.0)))

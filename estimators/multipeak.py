@@ -54,7 +54,7 @@ from typing import Literal
 import numba
 import numpy as np
 
-from .conventions import pairs
+from .conventions import delay_phasors, pairs
 from .numba_tools import all_finite, borrowed
 
 __all__ = ["NoiseAwareGcc", "Weighting"]
@@ -657,12 +657,13 @@ class NoiseAwareGcc:
         if not np.isfinite(d).all() or not np.any(d != d[0]):
             return
         i, j = self._pair_idx.T
-        rot = np.exp(-1j * np.outer(d[i] - d[j], self._omega)).astype(np.complex64)
+        chan = delay_phasors(d, self._omega)   # per channel, then per pair: 8 channels' trig, not 28 pairs'
+        rot = chan[i] * np.conj(chan[j])
         self._noise *= rot
         if short_time:
             self._smooth *= rot
         if self.noise_delay_frames:   # the frames still to join the noise average
-            self._ring *= np.exp(-1j * np.outer(d, self._omega)).astype(np.complex64)[None]
+            self._ring *= chan[None]
 
     def noise_peaks(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """N best peaks of the PHAT-weighted noise cross-power spectra: the persistent noise sources.
