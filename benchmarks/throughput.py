@@ -556,6 +556,23 @@ def _inputs_16k(files: list, tmp: pathlib.Path) -> list[pathlib.Path]:
     return out
 
 
+def _first_half(files: list, tmp: pathlib.Path, tag: str) -> list[pathlib.Path]:
+    """The first half of every device file (the same seconds on every device, each at its own rate, 16-bit WAV
+    as the scene files' FLAC hold): the running cost of a stream is the difference between the whole input and
+    its first half, in which the start-up (numba caches, the speech model, the first alignment over the same
+    window) and the report cancel."""
+    import soundfile as sf
+
+    seconds = min(sf.info(str(f)).duration for f in files) / 2
+    out = []
+    for f in files:
+        x, fs = sf.read(f, dtype="float32")
+        path = tmp / f"{tag}_{pathlib.Path(f).stem}_half.wav"
+        sf.write(path, x[:int(round(seconds * fs))], fs, subtype="PCM_16")
+        out.append(path)
+    return out
+
+
 def _scene_inputs(data: pathlib.Path, tmp: pathlib.Path) -> dict[str, list]:
     """Device files of :data:`TRACKS_SCENES` (``benchmarks/scenes.py``, seed 7), built from ``data``."""
     import scenes as sc   # benchmarks/scenes.py: pyroomacoustics rooms, real speech and noise
@@ -584,7 +601,12 @@ def bench_engine_tracks(repeats: int, data: pathlib.Path | None = None) -> dict:
       babble noise source at 5 dB and two talkers taking turns with white noise at 10 dB.
 
     CPU share of one core (process time / audio duration, setup and report included) and the median
-    ``Pipeline.process_block`` time per hop, also as a ratio to the FFT floor of 8 x 512."""
+    ``Pipeline.process_block`` time per hop, also as a ratio to the FFT floor of 8 x 512. On the scenes (16 s,
+    twice the first alignment's 8 s window) also the share of the running stream
+    (``engine_running_cpu_fraction_by_input``): the process time of the whole input minus that of its first half
+    (:func:`_first_half`, run in the same round) over the audio between them; the start-up, paid once per stream
+    (about 0.1 s of a core: kernels from the cache, the speech model, the first alignment), and the report
+    cancel, which is what a stream that runs for minutes pays per second."""
     import logging
 
     from stream.scoring.fixture import load_fixture
@@ -606,17 +628,27 @@ def bench_engine_tracks(repeats: int, data: pathlib.Path | None = None) -> dict:
         tmp = pathlib.Path(tmp)
         inputs = {"async_8dev": [d.path for d in fx.devices][:m]}
         inputs["async_8dev_16k"] = _inputs_16k(inputs["async_8dev"], tmp)
+        halves = {}
         if data is not None:
-            inputs.update(_scene_inputs(data, tmp))
+            scenes = _scene_inputs(data, tmp)
+            inputs.update(scenes)
+            halves = {name: _first_half(files, tmp, name) for name, files in scenes.items()}
+        running: dict[str, dict[str, list]] = {}
         for r in range(repeats + 1):   # run 0 is the warm-up (imports, compiled caches, the VAD model)
             for name, files in inputs.items():
                 for v, opts in variants.items():
                     config = EngineConfig(working_rate_hz=fs, frame_samples=frame, hop_samples=hop, plots=False,
                                           progress=False, **opts)
                     rep = run_replay(files, tmp / f"{name}_{v}_{r}", config=config).report
+                    if name in halves:   # its first half, right after (the same load)
+                        half = run_replay(halves[name], tmp / f"{name}_{v}_{r}_half", config=config).report
                     if not r:
                         continue
                     cpu.setdefault(name, {}).setdefault(v, []).append(rep["timing"]["cpu_s"] / rep["stream"]["audio_s"])
+                    if name in halves:
+                        running.setdefault(name, {}).setdefault(v, []).append(
+                            (rep["timing"]["cpu_s"] - half["timing"]["cpu_s"])
+                            / (rep["stream"]["audio_s"] - half["stream"]["audio_s"]))
                     if name == "async_8dev":
                         block[v].append(rep["timing"]["block_ms_median"])
                         block_mean[v].append(rep["timing"]["block_ms_mean"])
@@ -632,7 +664,9 @@ def bench_engine_tracks(repeats: int, data: pathlib.Path | None = None) -> dict:
     floor_ms = 1e3 * float(np.median(ts[20:]))
     out = {"tracks_vad_backend": backend, "tracks_fft_floor_ms_8x512": floor_ms,
            "engine_cpu_fraction_by_input": {name: {v: float(np.median(x)) for v, x in by.items()}
-                                            for name, by in cpu.items()}}
+                                            for name, by in cpu.items()},
+           "engine_running_cpu_fraction_by_input": {name: {v: float(np.median(x)) for v, x in by.items()}
+                                                    for name, by in running.items()}}
     for v in variants:
         out[f"engine_{v}_cpu_fraction_8dev_16k_hop128"] = float(np.median(cpu["async_8dev"][v]))
         out[f"engine_{v}_block_ms_median"] = float(np.median(block[v]))
@@ -856,6 +890,12 @@ def main(argv: list[str] | None = None) -> int:
     print(f"    {'input':<34} " + " ".join(f"{v:>13}" for v in variants))
     for name, by in by_input.items():
         print(f"    {name:<34} " + " ".join(f"{100 * by[v]:12.2f}%" for v in variants))
+    running = result.get("engine_running_cpu_fraction_by_input") or {}
+    if running:
+        print("  CPU share of one core of the running stream (whole input minus its first half, per second of "
+              "audio between them), median of runs:")
+        for name, by in running.items():
+            print(f"    {name:<34} " + " ".join(f"{100 * by[v]:12.2f}%" for v in variants))
     print(f"  tracks / kalman CPU (async_8dev): {result['tracks_cpu_ratio_to_kalman']:.2f}  "
           "(target: whole engine <= 5 % of a core)")
     print(json.dumps(result, sort_keys=False))
