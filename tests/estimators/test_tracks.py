@@ -754,3 +754,42 @@ def test_a_noise_heard_in_the_pauses_before_anybody_spoke_stays_noise_when_it_cl
     assert not np.all(np.abs(steered - NOISE) < W, axis=1).any()
     at_talker = np.all(np.abs(steered - TALKER_A) < W, axis=1)
     assert at_talker[int(2.0 / DT):].mean() > 0.95
+
+
+def test_a_talker_beside_a_noise_source_is_not_taken_for_it_in_the_pauses():
+    """The measured office's `m18` (bar, white noise at 10 dB): the noise sits within 0.1-0.5 ms of the talker on
+    several pairs, so in the pauses its peaks fell within the talker track's gates, and the talker track turned
+    noise 1.4 s into the first pause (the beam off the talker for 7 s). A peak that the noise source found in the
+    pauses takes in a non-speech frame is that source's, not the talker's: the talker track stays a talker."""
+    m, fs = 8, 16000.0
+    dt = 256 / fs
+    h = pair_matrix(m)
+    noise = np.array([0.0, -0.2, -1.55, -2.61, -1.14, -1.0, -1.79, -2.4]) * 1e-3   # m18's, at 7.5 s
+    talker = noise + np.array([0.0, 0.9, 0.46, 0.79, -0.22, 0.25, 1.23, 1.38]) * 1e-3
+    rng = np.random.default_rng(3)
+    tr = SourceTracker(m, frame_period_s=dt, sample_rate_hz=fs, min_peak_value=0.15)
+    usable = np.ones(m, bool)
+
+    def frame(sources, speech, t):
+        tdoa = rng.uniform(-0.01, 0.01, (h.shape[0], 5))
+        value = rng.uniform(0.05, 0.12, (h.shape[0], 5))
+        for q, (toa, v) in enumerate(sources):
+            tdoa[:, q] = h @ toa + rng.normal(0, 0.2 / fs, h.shape[0])
+            value[:, q] = v
+        order = np.argsort(-value, axis=1)
+        return tr.update(np.take_along_axis(tdoa, order, 1), np.take_along_axis(value, order, 1),
+                         speech_probability=float(speech), usable=usable, time_s=t)
+
+    t = 0.0
+    schedule = [(2.0, False), (3.0, True), (3.0, False), (1.0, True)]   # noise alone, talk, pause, talk
+    steered = []
+    for seconds, speech in schedule:
+        for _ in range(int(seconds / dt)):
+            sources = [(talker, 0.5)] if speech and rng.random() < 0.65 else []   # syllables
+            sources.append((noise, 0.4))
+            steered.append((t, speech, frame(sources, speech, t).copy()))
+            t += dt
+    talkers = [x for x in tr.report()["tracks"] if np.max(np.abs(np.array(x["last_toa_s"]) - talker)) < 2.5e-4]
+    assert talkers and all(x["kind"] == "speech" and not x["relabels"] for x in talkers), talkers
+    back = [np.max(np.abs(toa - talker)) < 2.5e-4 for s, sp, toa in steered if s >= 8.2]
+    assert np.mean(back) > 0.9
