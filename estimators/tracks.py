@@ -48,7 +48,10 @@ N best GCC-PHAT peaks of every pair (:class:`estimators.multipeak.NoiseAwareGcc`
   over 1 s), the source keeps sounding when nobody speaks.
   A noise track that starts having hits on speech frames (a talker whose breath, or the room of the recording,
   was heard before the first word) turns talker within about half a second (its hit rate on speech frames is
-  averaged over ``activity_time_constant_s``, a talker's over 1 s). Noise tracks are never steered at.
+  averaged over ``activity_time_constant_s``, a talker's over 1 s); one heard in the pauses for ``PAUSE_FIRST_S``
+  before its first hit on a speech frame, or found on the pauses' own peaks, only once the pauses are quiet of it.
+  In the pauses a peak that such a noise source takes does not count for a talker track on the pairs where the two
+  are more than ``NOISE_SAME_S`` apart (a talker beside the noise). Noise tracks are never steered at.
 - **Re-anchoring** (the steered track): one device locked on a reflection or a side lobe while the others are
   right shows up as every pair of that device peaking at one other TOA for it; the peaks' votes (decaying over
   about half a second of speech frames) move that device there when they outweigh staying ``REANCHOR_RATIO``
@@ -915,7 +918,7 @@ class SourceTracker:
         that source's, not a talker's, on the pairs where the two are more than ``NOISE_SAME_S`` apart: in the
         measured office's `m18` (bar, white noise at 10 dB) the noise sat
         within 0.1-0.5 ms of the talker on several pairs, its peaks fell in the talker track's gates in the
-        pauses, and the talker track turned noise 1.4 s into the first pause (0.98 dB against 4.7 with the truth)."""
+        pauses, and the talker track turned noise 1.4 s into the first pause (−0.98 dB against 4.7 with the truth)."""
         min_pairs = max(2, int(math.ceil(self.min_pair_fraction * n_ok)))
         noise_pred = ([self._predicted(n)[0] for n in self.tracks if n.quiet_origin or n.quiet_born]
                       if taken is not None and taken.any() else [])
