@@ -47,24 +47,35 @@ RECHECK_MAX_SILENT_SHARE = 0.1   # a re-check skips windows with more digital si
 
 
 @numba.njit(cache=True, nogil=True)
-def _block_valid(samples, aligned, is_reference, covered, out):
-    """``out[d]``: device ``d`` is usable in this block: aligned (or the reference), at least half the hop received
-    (``covered``) and not digital silence (RMS of its samples at least ``SILENCE_RMS``). One compiled call per
-    block instead of a few small numpy calls."""
+def _cut_block(datas, buf_start, received, offsets, first, aligned, is_reference, samples, valid):
+    """Cut one block: ``samples[:, d]`` = device ``d``'s samples ``[first + offsets[d], + hop)`` from its buffer
+    ``datas[d]`` (holding device samples ``[buf_start[d], received[d])``; zeros where it holds none), and
+    ``valid[d]``: the device is usable in this block: aligned (or the reference), at least half the hop received
+    and not digital silence (RMS of its samples at least ``SILENCE_RMS``). One compiled call per block instead of
+    a Python loop over the devices and a few small numpy calls."""
     hop, n_dev = samples.shape
     for d in range(n_dev):
+        start = first + offsets[d]
+        b0 = buf_start[d]
+        lo, hi = max(start, b0), min(start + hop, received[d])
+        buf = datas[d]
         e = 0.0
         for i in range(hop):
-            v = float(samples[i, d])
-            e += v * v
-        out[d] = (aligned[d] or is_reference[d]) and covered[d] and math.sqrt(e / hop) >= SILENCE_RMS
-    return out
+            j = start + i
+            v = buf[j - b0] if lo <= j < hi else np.float32(0.0)
+            samples[i, d] = v
+            e += float(v) * float(v)
+        covered = hi > lo and hi - max(start, b0, 0) >= hop // 2
+        valid[d] = (aligned[d] or is_reference[d]) and covered and math.sqrt(e / hop) >= SILENCE_RMS
+    return valid
 
 
 def compile_kernels(hop_samples: int, n_devices: int) -> None:
     """Compile (or load from numba's cache) this module's per-block kernel before a stream starts."""
-    _block_valid(np.zeros((hop_samples, n_devices), np.float32), np.ones(n_devices, bool),
-                 np.zeros(n_devices, bool), np.ones(n_devices, bool), np.empty(n_devices, np.bool_))
+    zeros = np.zeros(n_devices, np.int64)
+    _cut_block(tuple(np.zeros(hop_samples, np.float32) for _ in range(n_devices)), zeros, zeros + hop_samples,
+               zeros, 0, np.ones(n_devices, bool), np.zeros(n_devices, bool),
+               np.zeros((hop_samples, n_devices), np.float32), np.empty(n_devices, np.bool_))
 
 
 class _SampleBuffer:
@@ -490,7 +501,8 @@ class Aligner:
             k = self.next_block
             if self._ended[0] and k >= self._end_block():
                 break
-            offsets = self.offsets_samples.tolist()
+            offsets_now = self.offsets_samples.copy()   # the block's (shift moves self.offsets_samples later)
+            offsets = offsets_now.tolist()
             if not all_ended:
                 end = (k + 1) * hop
                 received, ended = self._received, self._ended
@@ -509,21 +521,14 @@ class Aligner:
             self._waiting_for = None
             if self._pending is not None and k >= self._pending[0]:
                 self._apply_recheck()
-                offsets = self.offsets_samples.tolist()
+                offsets_now = self.offsets_samples.copy()
             if self.recheck_blocks and k > 0 and k % self.recheck_blocks == 0 and self._pending is None:
                 self._submit_recheck()
-            samples = np.zeros((hop, n_dev), np.float32)
-            covered = np.zeros(n_dev, np.bool_)   # at least half the hop was received
-            bufs, buf_start, received, half = self._bufs, self._buf_start, self._received, hop // 2
-            for d in range(n_dev):   # written in place: zeros where a device has no samples (as _held_part)
-                start = k * hop + offsets[d]
-                b0 = buf_start[d]
-                buf = bufs[d].data
-                lo, hi = max(start, b0), min(start + hop, b0 + len(buf))
-                if hi > lo:
-                    samples[lo - start:hi - start, d] = buf[lo - b0:hi - b0]
-                    covered[d] = min(start + hop, received[d]) - max(start, b0, 0) >= half
-            valid = _block_valid(samples, self.aligned, self._is_reference, covered, np.empty(n_dev, np.bool_))
+            samples = np.empty((hop, n_dev), np.float32)
+            # each buffer holds device samples [_buf_start[d], _received[d])
+            valid = _cut_block(tuple([b._data for b in self._bufs]), np.array(self._buf_start),
+                               np.array(self._received), offsets_now, k * hop, self.aligned, self._is_reference,
+                               samples, np.empty(n_dev, np.bool_))
             corrected = None
             if self._any_corrected:
                 corrected, self._corrected = self._corrected, np.zeros(n_dev, bool)
@@ -532,7 +537,7 @@ class Aligner:
             if self.next_block % _TRIM_EVERY_BLOCKS == 0:
                 self._trim()
             yield Block(seq=k, first_sample=k * hop, sample_rate_hz=self.sample_rate_hz, samples=samples,
-                        valid=valid, offsets_samples=np.array(offsets, np.int64), corrected=corrected)
+                        valid=valid, offsets_samples=offsets_now, corrected=corrected)
 
     def _trim(self) -> None:
         keep = self.window_samples + self.hop_samples

@@ -133,7 +133,18 @@ class SpeechPresence:
             opts.log_severity_level = 3
             self._session = ort.InferenceSession(str(SILERO_MODEL), sess_options=opts,
                                                  providers=["CPUExecutionProvider"])
-            self._sr = np.array(SILERO_RATE_HZ, dtype=np.int64)
+            # the model reads and writes arrays of ours in place (bound once; the state alternates between two):
+            # about 20 us less per call than passing and returning numpy arrays, the same output to the bit
+            self._silero_input = np.zeros((self.n_devices, _SILERO_CONTEXT + _SILERO_WINDOW), np.float32)
+            self._silero_states = np.zeros((2, 2, self.n_devices, 128), np.float32)
+            self._silero_out = np.zeros((self.n_devices, 1), np.float32)
+            self._binding = self._session.io_binding()
+            value = ort.OrtValue.ortvalue_from_numpy
+            self._bound = (value(self._silero_input), value(np.array(SILERO_RATE_HZ, dtype=np.int64)),
+                           value(self._silero_out), value(self._silero_states[0]), value(self._silero_states[1]))
+            self._binding.bind_ortvalue_input("input", self._bound[0])
+            self._binding.bind_ortvalue_input("sr", self._bound[1])
+            self._binding.bind_ortvalue_output("output", self._bound[2])
         self.reset()
 
     def reset(self) -> None:
@@ -150,8 +161,10 @@ class SpeechPresence:
         self._energy_hist = np.full((self.n_devices, n_floor), np.inf)
         self._energy_pos = 0
         self._smoothed = np.zeros(self.n_devices)
-        self._silero_state = np.zeros((2, self.n_devices, 128), np.float32)
-        self._silero_input = np.zeros((self.n_devices, _SILERO_CONTEXT + _SILERO_WINDOW), np.float32)
+        if self.backend == "silero":
+            self._silero_states[:] = 0.0
+            self._silero_input[:] = 0.0
+            self._silero_side = 0                         # the state the next window reads (the other: written)
         self._speaking = np.zeros(self.n_devices, bool)
         self._silero_fill = 0                             # samples buffered (every device alike)
         self._all_usable = np.ones(self.n_devices, bool)
@@ -232,9 +245,12 @@ class SpeechPresence:
         while n - start >= frame:
             inp[:, :_SILERO_CONTEXT] = inp[:, -_SILERO_CONTEXT:]
             inp[:, _SILERO_CONTEXT:] = self._buffer[:, start:start + frame]
-            out, self._silero_state = self._session.run(
-                None, {"input": inp, "state": self._silero_state, "sr": self._sr})
-            p = out[:, 0]
+            side = self._silero_side
+            self._binding.bind_ortvalue_input("state", self._bound[3 + side])
+            self._binding.bind_ortvalue_output("stateN", self._bound[4 - side])
+            self._session.run_with_iobinding(self._binding)
+            self._silero_side = 1 - side
+            p = self._silero_out[:, 0]
             self._speaking = np.where(self._speaking, p >= _SILERO_OFF, p >= _SILERO_ON)
             self._held = np.where(self._speaking, self._hold_frames + 1, np.maximum(self._held - 1, 0))
             start += frame

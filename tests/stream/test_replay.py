@@ -330,7 +330,7 @@ def test_the_trackers_kernels_are_compiled_before_the_stream_not_at_its_first_ta
                              time_s=k * 0.016, noise_peaks=lambda: noise)
         after = signatures()
         used = [(T, "_anchor_vote"), (T, "_predict_gate"), (T, "_pick_peaks"), (T, "_solve_pairs"),
-                (K, "_kalman_step"), (A, "_block_valid"), (C, "_frame_stats")]
+                (K, "_kalman_step"), (A, "_cut_block"), (C, "_frame_stats")]
         print(all(before[m.__name__, k] > 0 for m, k in used), [k for k in after if after[k] > before[k]],
               sorted(t.kind for t in p.tracker.tracks))
         """)
