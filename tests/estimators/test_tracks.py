@@ -793,3 +793,51 @@ def test_a_talker_beside_a_noise_source_is_not_taken_for_it_in_the_pauses():
     assert talkers and all(x["kind"] == "speech" and not x["relabels"] for x in talkers), talkers
     back = [np.max(np.abs(toa - talker)) < 2.5e-4 for s, sp, toa in steered if s >= 8.2]
     assert np.mean(back) > 0.9
+
+
+def test_a_talkers_onset_born_as_noise_does_not_make_the_output_the_reference_device():
+    """Seed 8's `s36` (pink noise at 30 dB): the talker's first syllable leaked into the noise spectra and a noise
+    track was born there at her TOA, so with no talker track yet the devices' average at the coarse alignment (on
+    her, to 0.1 ms) "pointed at a noise source" and the output was the reference device alone for 0.15 s of the
+    first word (3 dB below the beam over that second). A noise track that behaves like a talker so far is not a
+    noise source for that rule; one heard in the pauses before anybody spoke still is."""
+    h = pair_matrix(M)
+
+    def spectra(toa):
+        tdoa, value = np.zeros((h.shape[0], 2)), np.zeros((h.shape[0], 2))
+        if toa is not None:
+            tdoa[:, 0], value[:, 0] = h @ toa, 0.5
+        return tdoa, value, np.zeros((h.shape[0], 64), np.float32)
+
+    def run(source, heard_from_s, seconds=2.5, speech_from_s=1.0):
+        """Non-speech frames until ``speech_from_s``, then the talker (A) in 80 % of the frames; ``source``'s
+        peaks in the noise spectra from ``heard_from_s`` (and in every frame when it is not the talker).
+        Yields (time, tracker) per frame."""
+        rng = np.random.default_rng(5)
+        tr = _tracker(quiet_confirm_s=None)   # noise sources from the noise spectra only, as in the scene
+        for k in range(int(seconds / DT)):
+            t = k * DT
+            speech = t >= speech_from_s
+            noise_spectra = spectra(source if t >= heard_from_s else None)
+            sources = [(TALKER_A, 0.5)] if speech and rng.random() < 0.8 else []
+            if source is not TALKER_A:
+                sources.append((source, 0.4))
+            tdoa, value = _peaks(sources, rng)
+            tr.update(tdoa, value, speech_probability=float(speech), usable=USABLE, time_s=t,
+                      noise_peaks=lambda: noise_spectra)
+            yield t, speech, tr
+
+    onset = 0
+    for t, speech, tr in run(TALKER_A, heard_from_s=0.8):   # the onset leaks in 0.2 s before the first word
+        for x in tr.tracks:
+            if x.kind == "noise" and np.max(np.abs(x.toa_s - TALKER_A)) < W and x.talker_like(tr.noise_quiet_activity):
+                onset += 1
+                assert not tr.noise_at(TALKER_A), t
+    assert onset, "the onset was never a talker-like noise track"
+    assert tr.steered_id >= 0 and np.max(np.abs(tr.steered.toa_s - TALKER_A)) < W
+    noise = 0
+    for t, speech, tr in run(NOISE, heard_from_s=0.0):      # a noise source heard a second before anybody spoke
+        if speech and any(x.kind == "noise" and np.max(np.abs(x.toa_s - NOISE)) < W for x in tr.tracks):
+            noise += 1
+            assert tr.noise_at(NOISE), t
+    assert noise
