@@ -134,7 +134,8 @@ class SpeechPresence:
             self._session = ort.InferenceSession(str(SILERO_MODEL), sess_options=opts,
                                                  providers=["CPUExecutionProvider"])
             # the model reads and writes arrays of ours in place (bound once; the state alternates between two):
-            # about 20 us less per call than passing and returning numpy arrays, the same output to the bit
+            # about 3 % less per call than passing and returning numpy arrays (9 of 315 us for 8 devices, timed
+            # alternately in one process), the same output to the bit
             self._silero_input = np.zeros((self.n_devices, _SILERO_CONTEXT + _SILERO_WINDOW), np.float32)
             self._silero_states = np.zeros((2, 2, self.n_devices, 128), np.float32)
             self._silero_out = np.zeros((self.n_devices, 1), np.float32)

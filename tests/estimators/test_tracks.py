@@ -812,7 +812,7 @@ def test_a_talkers_onset_born_as_noise_does_not_make_the_output_the_reference_de
     def run(source, heard_from_s, seconds=2.5, speech_from_s=1.0):
         """Non-speech frames until ``speech_from_s``, then the talker (A) in 80 % of the frames; ``source``'s
         peaks in the noise spectra from ``heard_from_s`` (and in every frame when it is not the talker).
-        Yields (time, tracker) per frame."""
+        Yields (time, speech, tracker) per frame."""
         rng = np.random.default_rng(5)
         tr = _tracker(quiet_confirm_s=None)   # noise sources from the noise spectra only, as in the scene
         for k in range(int(seconds / DT)):
@@ -830,7 +830,8 @@ def test_a_talkers_onset_born_as_noise_does_not_make_the_output_the_reference_de
     onset = 0
     for t, speech, tr in run(TALKER_A, heard_from_s=0.8):   # the onset leaks in 0.2 s before the first word
         for x in tr.tracks:
-            if x.kind == "noise" and np.max(np.abs(x.toa_s - TALKER_A)) < W and x.talker_like(tr.noise_quiet_activity):
+            at_talker = x.kind == "noise" and np.max(np.abs(x.toa_s - TALKER_A)) < W
+            if at_talker and x.talker_like(tr.noise_quiet_activity):
                 onset += 1
                 assert not tr.noise_at(TALKER_A), t
     assert onset, "the onset was never a talker-like noise track"
