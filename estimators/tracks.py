@@ -110,6 +110,7 @@ QUIET_S = 0.048                   # the steered talker unheard for this long (sp
 FAST_ACTIVITY_S = 0.1             # ... the one most active over about this long (speech frames)
 LOUDER_MIN_HITS = 15              # hits in speech frames and in the pauses before ``louder_ratio`` is applied,
 LOUDER_MAX_HITS = 50              # ... and in speech frames after which it is not (a talker's first second)
+NOISE_KNOWN_S = 0.5               # a noise track this old may make the output the reference device (noise_at)
 PAUSE_FIRST_S = 0.5               # a noise track heard this long in the pauses before its first hit on a speech
 #                                   frame is a noise source first (:attr:`Track.pause_first`)
 
@@ -620,13 +621,20 @@ class SourceTracker:
         return -1 if self.steered is None else self.steered.track_id
 
     def noise_at(self, toa_s: np.ndarray, tol_s: float = 2.5e-4) -> bool:
-        """Whether a tracked noise source sits at the relative TOA ``toa_s`` (every device within ``tol_s``); not
-        one that behaves like a talker so far (:meth:`Track.talker_like`: a talker's onset that leaked into the
-        noise spectra, born there just before the first word, is such a track until it turns talker; taking it
-        for the noise made seed 8's `s36` (pink noise at 30 dB) the reference device alone for 0.15 s of the first
-        word, 3 dB below the beam over that second)."""
-        return any(t.kind == "noise" and self._gap(t.toa_s, toa_s) <= tol_s
-                   and not t.talker_like(self.noise_quiet_activity) for t in self.tracks)
+        """Whether a tracked noise source sits at the relative TOA ``toa_s`` (every device within ``tol_s``), one
+        known as such (:meth:`_heard_as_noise`): a talker's onset that leaked into the noise spectra, born there
+        as the first word began, is not (taking it for the noise made seed 8's `s36`, pink noise at 30 dB, the
+        reference device alone for 0.15 s of the first word, 3 dB below the beam over that second)."""
+        return any(t.kind == "noise" and self._gap(t.toa_s, toa_s) <= tol_s and self._heard_as_noise(t)
+                   for t in self.tracks)
+
+    def _heard_as_noise(self, t: Track) -> bool:
+        """A noise track old enough to be a noise source for :meth:`noise_at` (``NOISE_KNOWN_S`` since its birth)
+        and not behaving like a talker so far (:meth:`Track.talker_like`). A talker's onset leaks into the noise
+        spectra before the speech detector fires, and a noise track is born there at her TOA (seed 11's `s34`:
+        at 5.09 s, the first word at 5.1 s; it turned talker within half a second)."""
+        return (self._time_s - t.born_s >= NOISE_KNOWN_S
+                and not t.talker_like(self.noise_quiet_activity))
 
     def report(self) -> dict:
         """Tracks (alive and ended), switches and counters, for ``report.json``."""
