@@ -141,8 +141,10 @@ class SpeechPresence:
             self._silero_out = np.zeros((self.n_devices, 1), np.float32)
             self._binding = self._session.io_binding()
             value = ort.OrtValue.ortvalue_from_numpy
+            # the OrtValues keep the bound arrays (and the rate) alive with the binding
             self._bound = (value(self._silero_input), value(np.array(SILERO_RATE_HZ, dtype=np.int64)),
-                           value(self._silero_out), value(self._silero_states[0]), value(self._silero_states[1]))
+                           value(self._silero_out))
+            self._bound_states = (value(self._silero_states[0]), value(self._silero_states[1]))
             self._binding.bind_ortvalue_input("input", self._bound[0])
             self._binding.bind_ortvalue_input("sr", self._bound[1])
             self._binding.bind_ortvalue_output("output", self._bound[2])
@@ -247,8 +249,8 @@ class SpeechPresence:
             inp[:, :_SILERO_CONTEXT] = inp[:, -_SILERO_CONTEXT:]
             inp[:, _SILERO_CONTEXT:] = self._buffer[:, start:start + frame]
             side = self._silero_side
-            self._binding.bind_ortvalue_input("state", self._bound[3 + side])
-            self._binding.bind_ortvalue_output("stateN", self._bound[4 - side])
+            self._binding.bind_ortvalue_input("state", self._bound_states[side])
+            self._binding.bind_ortvalue_output("stateN", self._bound_states[1 - side])
             self._session.run_with_iobinding(self._binding)
             self._silero_side = 1 - side
             p = self._silero_out[:, 0]
