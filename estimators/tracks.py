@@ -34,12 +34,15 @@ N best GCC-PHAT peaks of every pair (:class:`estimators.multipeak.NoiseAwareGcc`
   the detector calls every frame speech while it sounds (a dish clatter fires Silero); there its gate stays
   capped however young it is (an open gate took the talker's peaks at the first word). It turns talker only
   once the pauses are quiet of it, or when over its first speech hits its peaks are ``louder_ratio`` times higher
-  in speech frames than in the pauses and it is hit in most speech frames: a talker heard before the first word
-  (the room or the breath of the recording); a noise source is masked by the talker instead
-  (``n_talkers_from_pauses`` in the report). The noise spectra correct it when they agree on all devices but one
+  in speech frames than in the pauses and it is hit in most speech frames (over ``LOUDER_MIN_HITS`` hits; over
+  ``LOUDER_EARLY_HITS``, whatever its hit rate, where they are ``LOUDER_EARLY_RATIO`` times higher): a talker
+  heard before the first word (the room or the breath of the recording); a noise source is masked by the talker
+  instead (``n_talkers_from_pauses`` in the report). The noise spectra correct it when they agree on all devices but one
   (a single pause's peaks may put one device on a reflection). A talker track within ``NOISE_SAME_S`` of it on
   every device, or on every device but one (at least four agreeing, up to a common shift: born on the noise's
-  peaks where its gate missed them, one device on another peak), is that noise source, and goes.
+  peaks where its gate missed them, one device on another peak), is that noise source, and goes; unless the
+  talker's peaks are ``LOUDER_EARLY_RATIO`` times the noise track's in the pauses and the noise track was born
+  after somebody spoke: then it is the talker's own sound in the pauses, and the noise track goes.
 - **Labels**: a track is ``"speech"`` when it was born and confirmed on speech frames; it becomes ``"noise"``
   when its activity does not follow speech presence: on non-speech frames (plain PHAT peaks) every track is
   checked, without an update, for its peaks (from 0.3 s after the last speech frame on, past a talker's
@@ -110,6 +113,8 @@ QUIET_S = 0.048                   # the steered talker unheard for this long (sp
 FAST_ACTIVITY_S = 0.1             # ... the one most active over about this long (speech frames)
 LOUDER_MIN_HITS = 15              # hits in speech frames and in the pauses before ``louder_ratio`` is applied,
 LOUDER_MAX_HITS = 50              # ... and in speech frames after which it is not (a talker's first second)
+LOUDER_EARLY_HITS = 4             # ... but this many speech hits are enough where the peaks are this many times
+LOUDER_EARLY_RATIO = 2.0          # higher than in the pauses
 NOISE_KNOWN_S = 0.5               # a noise track this old may make the output the reference device (noise_at)
 PAUSE_FIRST_S = 0.5               # a noise track heard this long in the pauses before its first hit on a speech
 #                                   frame is a noise source first (:attr:`Track.pause_first`)
@@ -569,6 +574,7 @@ class SourceTracker:
             self.switches: list[dict] = []
             self.n_frames = 0
             self.n_speech_frames = 0
+            self.first_speech_s: float | None = None   # the time of the first speech frame
             self.n_births = 0
             self.n_reanchored = 0
             self.n_taken_over = 0
@@ -681,6 +687,8 @@ class SourceTracker:
         self.gated = False
         if speech and n_ok:
             self.n_speech_frames += 1
+            if self.first_speech_s is None:
+                self.first_speech_s = time_s
             for t in [t for t in self.tracks if t.quiet_born]:   # a noise source is confirmed in one pause
                 self._end(t, time_s, "not confirmed")
             hit_any = self._associate(peak_tdoa_s, peak_value, pair_ok, n_ok, time_s)
@@ -970,9 +978,12 @@ class SourceTracker:
             # pauses are quiet of it
             t.relabel("speech", self._time_s, "heard when somebody speaks, quiet in the pauses")
             t.quiet_origin = False
-        elif t.kind == "noise" and t.quiet_origin and self.louder_ratio is not None and t.speech_rate > 0.5 and \
-                LOUDER_MIN_HITS <= t.n_speech_values <= LOUDER_MAX_HITS and t.n_quiet_values >= LOUDER_MIN_HITS \
-                and t.speech_value > self.louder_ratio * t.quiet_value:
+        elif t.kind == "noise" and t.quiet_origin and self.louder_ratio is not None and \
+                t.n_speech_values <= LOUDER_MAX_HITS and t.n_quiet_values >= LOUDER_MIN_HITS and (
+                    t.speech_rate > 0.5 and t.n_speech_values >= LOUDER_MIN_HITS
+                    and t.speech_value > self.louder_ratio * t.quiet_value
+                    or t.n_speech_values >= LOUDER_EARLY_HITS
+                    and t.speech_value > max(LOUDER_EARLY_RATIO, self.louder_ratio) * t.quiet_value):
             # a source of the pauses that is louder when somebody speaks is a talker heard before the first word
             # (the room or the breath of the recording): a noise source is masked by the talker instead. Over the
             # scenes of seeds 7-10 a noise source's peaks were 0.5-1.0 times as high in speech frames as in the
@@ -1254,9 +1265,23 @@ class SourceTracker:
         for n in [t for t in self.tracks if t.quiet_origin and t.kind == "noise"]:
             n_toa = n.toa_s
             for t in [t for t in self.tracks if t.kind == "speech"]:
-                if within_but_one(t.toa_s - n_toa, NOISE_SAME_S)[0]:
-                    self._end(t, time_s, f"merged into noise track {n.track_id} (the same source, heard in the "
-                                         "pauses)")
+                if not within_but_one(t.toa_s - n_toa, NOISE_SAME_S)[0]:
+                    continue
+                if self.louder_ratio is not None and t.n_speech_values >= LOUDER_MIN_HITS and \
+                        n.n_quiet_values >= LOUDER_MIN_HITS and \
+                        self.first_speech_s is not None and n.born_s > self.first_speech_s and \
+                        t.speech_value > max(LOUDER_EARLY_RATIO, self.louder_ratio) * n.quiet_value:
+                    # the talker's own sound in the pauses (the room or the breath of the recording), found as a
+                    # noise source: the talker's peaks are far higher when they speak (measured office's `m47`:
+                    # the second talker's track went at their third turn, and the beam stayed on the first). Not
+                    # a source heard before anybody spoke: a quiet noise source where a talker stands, as seen
+                    # from the devices (the office's `m43`, dishes 20 dB below the talker)
+                    self._end(n, time_s, f"the sound of talker {t.track_id} in the pauses (its peaks "
+                                         f"{t.speech_value / max(n.quiet_value, 1e-12):.1f} times as high when "
+                                         "the talker speaks)")
+                    break
+                self._end(t, time_s, f"merged into noise track {n.track_id} (the same source, heard in the "
+                                     "pauses)")
         # merge duplicates of the same kind (the younger goes)
         confirmed = [t for t in self.tracks if t.kind != "tentative"]
         for a_i, a in enumerate(confirmed):

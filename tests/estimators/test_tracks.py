@@ -585,6 +585,36 @@ def test_a_young_steered_duplicate_keeps_the_beam_with_the_older_tracks_filter()
     np.testing.assert_allclose(young.toa_s, old.toa_s)
 
 
+@pytest.mark.parametrize("louder, born_before_speech", [(2.6, False), (1.5, False), (2.6, True)])
+def test_a_noise_source_found_in_the_pauses_on_a_talker_goes_when_the_talker_is_far_louder(louder,
+                                                                                           born_before_speech):
+    """A talker track (3 s of speech) and a noise track found in the pauses at the same TOA (the talker's own sound
+    in the pauses: the room or the breath of the recording). When the talker's peaks are more than twice as high as
+    the noise track's were in the pauses, the noise track goes and the talker's stays steered (the measured
+    office's `m47`: the second talker's track went when such a noise track was confirmed, and the first talker
+    stayed steered 0.8 s into the second's turn). When they are only 1.5 times as high, or the noise track was
+    heard before anybody spoke (a quiet noise source where the talker stands, as the devices hear it: the
+    office's `m43`), the talker track is the noise source heard in speech frames, and goes (the rule as before)."""
+    rng = np.random.default_rng(6)
+    tr = _tracker()
+    t = _talk(tr, rng, lambda t: TALKER_A, 3.0)
+    talker = tr.steered
+    assert talker is not None and talker.n_speech_values >= 50
+    noise = tr._new_track("noise", t)       # as a birth on the pauses' peaks and its confirmation would make it
+    noise.kalman._kf.x[:] = talker.kalman._kf.x
+    noise.quiet_origin = True
+    noise.quiet_value, noise.n_quiet_values = talker.speech_value / louder, 30
+    if born_before_speech:
+        noise.born_s = tr.first_speech_s - 1.0
+    tr._housekeeping(t)
+    if louder > 2 and not born_before_speech:
+        assert noise not in tr.tracks and noise.death_reason.startswith(f"the sound of talker {talker.track_id} ")
+        assert talker in tr.tracks and tr.steered is talker
+    else:
+        assert talker not in tr.tracks and noise in tr.tracks
+        assert talker.death_reason.startswith(f"merged into noise track {noise.track_id}")
+
+
 @pytest.mark.parametrize("unpinned_s", [0.25, None])
 def test_a_device_no_pair_measures_goes_on_at_clock_drift_not_at_the_last_motion(unpinned_s):
     """A talker walks for 2 s (device 3's TOA changes by 2 ms/s) and stops; from then on device 3's pairs carry no
@@ -659,6 +689,44 @@ def test_a_talker_heard_in_the_pauses_before_the_first_word_is_steered_when_they
     (change,) = b["relabels"]   # ... and when its label changed, from what, and why
     assert (change["from"], change["to"]) == ("noise", "speech")
     assert 2.0 <= change["time_s"] <= 2.5 and "times as high when somebody speaks" in change["why"]
+
+
+@pytest.mark.parametrize("early", [True, False])
+def test_a_talker_heard_in_the_pauses_and_much_louder_when_speaking_is_steered_from_their_first_word(
+        early, monkeypatch):
+    """As above, but B's peaks are 2.6 times as high when B speaks as in the pause: four speech hits are
+    evidence enough (``LOUDER_EARLY_HITS``, ``LOUDER_EARLY_RATIO``): B turns talker 48 ms after the first word
+    and is steered from 64 ms. Waiting for 15 hits (without the early rule) left B a noise source for 0.27 s
+    after the word and nothing was steered meanwhile; in seed 8's `s46` a weaker ghost of B's voice was steered
+    then (the second talker's first 0.4 s, 0.55 dB of the scene)."""
+    import estimators.tracks as tracks
+    if not early:
+        monkeypatch.setattr(tracks, "LOUDER_EARLY_RATIO", np.inf)
+    rng = np.random.default_rng(22)
+    tr = _tracker()
+    steered = []
+    for k in range(int(4.0 / DT)):
+        t = k * DT
+        if t < 1.0:
+            sources, p = [(NOISE, 0.6)], 0.0
+        elif t < 2.0:
+            sources, p = [(NOISE, 0.6), (TALKER_B, 0.25)], 0.0
+        else:
+            sources, p = [(TALKER_B, 0.65), (NOISE, 0.3)], 1.0
+        tdoa, value = _peaks(sources, rng)
+        steered.append(tr.update(tdoa, value, speech_probability=p, usable=USABLE, time_s=t).copy())
+    steered = np.array(steered)
+    at_b = np.all(np.abs(steered - TALKER_B) < 2.5e-4, axis=1)
+    assert not np.all(np.abs(steered - NOISE) < 2.5e-4, axis=1).any()
+    b = next(x for x in tr.report()["tracks"] if np.max(np.abs(np.array(x["last_toa_s"]) - TALKER_B)) < 2.5e-4)
+    (change,) = b["relabels"]
+    assert (change["from"], change["to"]) == ("noise", "speech")
+    if early:
+        assert 2.0 <= change["time_s"] <= 2.1
+        assert at_b[int(2.1 / DT):].all()
+    else:
+        assert change["time_s"] >= 2.2
+        assert not at_b[int(2.1 / DT):int(2.2 / DT)].any()
 
 
 def test_a_clock_rate_correction_moves_the_drift_the_track_keeps_in_pauses():
