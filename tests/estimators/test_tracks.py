@@ -652,6 +652,24 @@ def test_a_device_no_pair_measures_goes_on_at_clock_drift_not_at_the_last_motion
     assert abs(track.toa_rate_s_per_s[3]) <= MAX_DRIFT_RATE_S_PER_S + 1e-12
 
 
+def _pause_sound_then_speech(tr, rng, speaking_height, seconds):
+    """A noise source alone for 1 s (peaks 0.6 high), then with talker B's room sound (0.25) for 1 s, both in
+    non-speech frames; then B speaks (peaks ``speaking_height`` high), the noise masked (0.3), until ``seconds``.
+    Returns the steered TOA of every frame, shape (n_frames, M)."""
+    steered = []
+    for k in range(int(seconds / DT)):
+        t = k * DT
+        if t < 1.0:
+            sources, p = [(NOISE, 0.6)], 0.0
+        elif t < 2.0:
+            sources, p = [(NOISE, 0.6), (TALKER_B, 0.25)], 0.0
+        else:
+            sources, p = [(TALKER_B, speaking_height), (NOISE, 0.3)], 1.0
+        tdoa, value = _peaks(sources, rng)
+        steered.append(tr.update(tdoa, value, speech_probability=p, usable=USABLE, time_s=t).copy())
+    return np.array(steered)
+
+
 @pytest.mark.parametrize("louder_ratio", [1.3, None])
 def test_a_talker_heard_in_the_pauses_before_the_first_word_is_steered_when_they_speak(louder_ratio):
     """A noise source sounds alone for 1 s; then talker B's recording starts with 1 s of its own room sound before
@@ -661,18 +679,7 @@ def test_a_talker_heard_in_the_pauses_before_the_first_word_is_steered_when_they
     nothing was steered (seed 9's `s45` and seed 10's `s47`: a whole turn of 3.8 and 4.5 s lost)."""
     rng = np.random.default_rng(22)
     tr = _tracker(louder_ratio=louder_ratio)
-    steered, t = [], 0.0
-    for k in range(int(5.0 / DT)):
-        t = k * DT
-        if t < 1.0:
-            sources, p = [(NOISE, 0.6)], 0.0
-        elif t < 2.0:
-            sources, p = [(NOISE, 0.6), (TALKER_B, 0.25)], 0.0
-        else:
-            sources, p = [(TALKER_B, 0.5), (NOISE, 0.3)], 1.0
-        tdoa, value = _peaks(sources, rng)
-        steered.append(tr.update(tdoa, value, speech_probability=p, usable=USABLE, time_s=t).copy())
-    steered = np.array(steered)
+    steered = _pause_sound_then_speech(tr, rng, 0.5, 5.0)
     at_b = np.all(np.abs(steered - TALKER_B) < 2.5e-4, axis=1)
     at_noise = np.all(np.abs(steered - NOISE) < 2.5e-4, axis=1)
     assert not at_noise.any()
@@ -704,18 +711,7 @@ def test_a_talker_heard_in_the_pauses_and_much_louder_when_speaking_is_steered_f
         monkeypatch.setattr(tracks, "LOUDER_EARLY_RATIO", np.inf)
     rng = np.random.default_rng(22)
     tr = _tracker()
-    steered = []
-    for k in range(int(4.0 / DT)):
-        t = k * DT
-        if t < 1.0:
-            sources, p = [(NOISE, 0.6)], 0.0
-        elif t < 2.0:
-            sources, p = [(NOISE, 0.6), (TALKER_B, 0.25)], 0.0
-        else:
-            sources, p = [(TALKER_B, 0.65), (NOISE, 0.3)], 1.0
-        tdoa, value = _peaks(sources, rng)
-        steered.append(tr.update(tdoa, value, speech_probability=p, usable=USABLE, time_s=t).copy())
-    steered = np.array(steered)
+    steered = _pause_sound_then_speech(tr, rng, 0.65, 4.0)
     at_b = np.all(np.abs(steered - TALKER_B) < 2.5e-4, axis=1)
     assert not np.all(np.abs(steered - NOISE) < 2.5e-4, axis=1).any()
     b = next(x for x in tr.report()["tracks"] if np.max(np.abs(np.array(x["last_toa_s"]) - TALKER_B)) < 2.5e-4)
