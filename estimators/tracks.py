@@ -978,12 +978,7 @@ class SourceTracker:
             # pauses are quiet of it
             t.relabel("speech", self._time_s, "heard when somebody speaks, quiet in the pauses")
             t.quiet_origin = False
-        elif t.kind == "noise" and t.quiet_origin and self.louder_ratio is not None and \
-                t.n_speech_values <= LOUDER_MAX_HITS and t.n_quiet_values >= LOUDER_MIN_HITS and (
-                    t.speech_rate > 0.5 and t.n_speech_values >= LOUDER_MIN_HITS
-                    and t.speech_value > self.louder_ratio * t.quiet_value
-                    or t.n_speech_values >= LOUDER_EARLY_HITS
-                    and t.speech_value > max(LOUDER_EARLY_RATIO, self.louder_ratio) * t.quiet_value):
+        elif t.kind == "noise" and t.quiet_origin and self._louder_when_speaking(t):
             # a source of the pauses that is louder when somebody speaks is a talker heard before the first word
             # (the room or the breath of the recording): a noise source is masked by the talker instead. Over the
             # scenes of seeds 7-10 a noise source's peaks were 0.5-1.0 times as high in speech frames as in the
@@ -994,6 +989,23 @@ class SourceTracker:
             t.quiet_origin = False
             t.quiet_activity = 0.0
             self.n_talkers_from_pauses += 1
+
+    def _louder_when_speaking(self, t: Track) -> bool:
+        """Over its first speech hits (at most ``LOUDER_MAX_HITS``, with ``LOUDER_MIN_HITS`` in the pauses) its
+        peaks are ``louder_ratio`` times as high in speech frames as in the pauses and it is hit in most speech
+        frames (from ``LOUDER_MIN_HITS`` speech hits on), or :meth:`_far_louder` (from ``LOUDER_EARLY_HITS``)."""
+        if self.louder_ratio is None or t.n_quiet_values < LOUDER_MIN_HITS or t.n_speech_values > LOUDER_MAX_HITS:
+            return False
+        if t.n_speech_values >= LOUDER_MIN_HITS and t.speech_rate > 0.5 and \
+                t.speech_value > self.louder_ratio * t.quiet_value:
+            return True
+        return t.n_speech_values >= LOUDER_EARLY_HITS and self._far_louder(t.speech_value, t.quiet_value)
+
+    def _far_louder(self, speech_value: float, quiet_value: float) -> bool:
+        """Peaks in speech frames ``LOUDER_EARLY_RATIO`` (and ``louder_ratio``) times those in the pauses: a talker's
+        own sound in the pauses, not a noise source the talker masks."""
+        return self.louder_ratio is not None and \
+            speech_value > max(LOUDER_EARLY_RATIO, self.louder_ratio) * quiet_value
 
     def _record_hit(self, t: Track, time_s: float, value: float, *, measured: bool = False) -> None:
         rate = t.kalman._kf.x[self.n_devices - 1:]
@@ -1267,10 +1279,9 @@ class SourceTracker:
             for t in [t for t in self.tracks if t.kind == "speech"]:
                 if not within_but_one(t.toa_s - n_toa, NOISE_SAME_S)[0]:
                     continue
-                if self.louder_ratio is not None and t.n_speech_values >= LOUDER_MIN_HITS and \
-                        n.n_quiet_values >= LOUDER_MIN_HITS and \
-                        self.first_speech_s is not None and n.born_s > self.first_speech_s and \
-                        t.speech_value > max(LOUDER_EARLY_RATIO, self.louder_ratio) * n.quiet_value:
+                # (a speech track with LOUDER_MIN_HITS speech hits: somebody spoke, first_speech_s is set)
+                if t.n_speech_values >= LOUDER_MIN_HITS and n.n_quiet_values >= LOUDER_MIN_HITS and \
+                        n.born_s > self.first_speech_s and self._far_louder(t.speech_value, n.quiet_value):
                     # the talker's own sound in the pauses (the room or the breath of the recording), found as a
                     # noise source: the talker's peaks are far higher when they speak (measured office's `m47`:
                     # the second talker's track went at their third turn, and the beam stayed on the first). Not

@@ -20,11 +20,15 @@ import sys
 from pathlib import Path
 
 import numpy as np
-import onnx
 import onnxruntime as ort
-import onnxsim
 import soundfile as sf
-from onnx import helper
+
+try:   # the build needs onnx and onnxsim (the ``tools`` extra); :func:`compare` (and the test) only onnxruntime
+    import onnx
+    import onnxsim
+    from onnx import helper
+except ImportError:
+    onnx = onnxsim = helper = None
 
 ROOT = Path(__file__).resolve().parents[1]
 SOURCE = ROOT / "stream" / "models" / "silero_vad.onnx"
@@ -87,32 +91,40 @@ def fix_rate(model: onnx.ModelProto) -> onnx.ModelProto:
     return simple
 
 
+def compare(two_rate, fixed, x: np.ndarray) -> np.ndarray:
+    """Run both models (onnxruntime sessions) over ``x`` (n_devices, n_samples) at 8 kHz in 32 ms windows, all
+    devices in one call, the state carried from window to window. Raises unless output and state are equal to
+    the bit; returns the two-rate model's speech probabilities, shape (n_windows, n_devices)."""
+    sa = sb = np.zeros((2, len(x), 128), np.float32)
+    context = np.zeros((len(x), WINDOW - 256), np.float32)
+    p = []
+    for start in range(0, x.shape[1] - 256 + 1, 256):
+        window = np.concatenate([context, x[:, start:start + 256]], axis=1)
+        context = window[:, -(WINDOW - 256):]
+        pa, sa = two_rate.run(None, {"input": window, "state": sa, "sr": np.array(RATE_HZ, np.int64)})
+        pb, sb = fixed.run(None, {"input": window, "state": sb})
+        if not (np.array_equal(pa, pb) and np.array_equal(sa, sb)):
+            raise RuntimeError(f"window {len(p)}: the fixed-rate model differs from the two-rate one")
+        p.append(pa[:, 0])
+    return np.array(p)
+
+
 def check_same(fixed: onnx.ModelProto) -> int:
-    """Run both models over the fixtures' devices (8 kHz, 32 ms windows, the state carried); the number of
-    windows compared. Raises unless output and state are equal to the bit."""
+    """:func:`compare` over the fixtures' devices; the number of windows compared."""
     import soxr
-    two_rate, eight = _session(onnx.load(str(SOURCE))), _session(fixed)
     x = []
     for name in ("meeting_table", "kitchen_noise"):
         for path in sorted((ROOT / "replay_fixtures" / name).glob("dev*.flac"))[:4]:
             y, fs = sf.read(path, dtype="float32", frames=int(6.0 * 48000))
             x.append(soxr.resample(y if y.ndim == 1 else y.mean(axis=1), fs, RATE_HZ)[:int(5.0 * RATE_HZ)])
     x = np.stack([np.pad(y, (0, int(5.0 * RATE_HZ) - len(y))) for y in x]).astype(np.float32)
-    sa = sb = np.zeros((2, len(x), 128), np.float32)
-    context = np.zeros((len(x), WINDOW - 256), np.float32)
-    n = 0
-    for start in range(0, x.shape[1] - 256 + 1, 256):
-        window = np.concatenate([context, x[:, start:start + 256]], axis=1)
-        context = window[:, -(WINDOW - 256):]
-        pa, sa = two_rate.run(None, {"input": window, "state": sa, "sr": np.array(RATE_HZ, np.int64)})
-        pb, sb = eight.run(None, {"input": window, "state": sb})
-        if not (np.array_equal(pa, pb) and np.array_equal(sa, sb)):
-            raise RuntimeError(f"window {n}: the fixed-rate model differs from the two-rate one")
-        n += 1
-    return n
+    return len(compare(_session(onnx.load(str(SOURCE))), _session(fixed), x))
 
 
 def main() -> int:
+    if onnx is None:
+        print("tools/silero_8k.py needs onnx and onnxsim: pip install -e \".[tools]\"", file=sys.stderr)
+        return 1
     fixed = fix_rate(onnx.load(str(SOURCE)))
     n = check_same(fixed)
     onnx.save(fixed, str(TARGET))
