@@ -93,7 +93,7 @@ def test_capture_of_a_multichannel_signal_is_bit_exact(jack, bay):
         firsts: dict[int, list] = {0: [], 1: []}
         with CardSource(["system:1,2,3", "system:5,6"], max_duration_s=2.0) as src:
             assert len(src._cards) == 1 and src._cards[0].n_channels == 6
-            _feed(bay, sig, 6)
+            _feed(bay, sig, 6, delay_s=WHOLE_DELAY_S)   # wired before it plays (once, the first periods were lost)
             for f in src:
                 frames[f.device_id].append(f.samples)
                 firsts[f.device_id].append(f.first_sample)
