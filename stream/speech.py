@@ -10,8 +10,8 @@ every device in one batched call. The engine runs that model with its rate fixed
 convolution written as one matrix product over every device (``stream/models/silero_vad_8k.onnx``, built from
 it by ``tools/silero_8k.py``: without the export's branches, 90.8 -> 83.4 us per hop for 8 devices at 16 kHz,
 hop 128; as matrix products 84 -> 41 us per hop, the batched call 283 -> 104 us; the speech probability within
-2.3e-6 of the two-rate model's over the fixtures' 29 devices and not one decision different). A device speaks from a window with probability >= 0.5 until one below 0.35
-(the model's recommended hysteresis). 8 kHz rather than the model's 16 kHz mode: the batched call costs about
+2.3e-6 of the two-rate model's over the fixtures' 29 devices and not one decision different). A device speaks
+from a window with probability >= 0.5 until one below 0.35 (the model's recommended hysteresis). 8 kHz rather than the model's 16 kHz mode: the batched call costs about
 0.7 of the 16 kHz one with the resampling (285 against 407 us per window of 8 devices), which brings the engine
 with the tracker to the 5 % budget, and it is at least as accurate here: the kitchen recording alone at 10 dB is
 speech in 0 % of 10 ms frames (2 % at 16 kHz), with a talker over it the recall is 0.985 (0.952); every shipped
@@ -58,7 +58,7 @@ SILERO_MODEL = Path(__file__).resolve().parent / "models" / "silero_vad_8k.onnx"
 SILERO_RATE_HZ = 8000       # the shipped two-rate export also runs at 16 kHz; 8 kHz: see the module doc
 _SILERO_WINDOW = 256        # samples at 8 kHz (32 ms)
 _SILERO_CONTEXT = 32        # samples of the previous window the model sees
-_SILERO_ON, _SILERO_OFF = 0.5, 0.35
+SILERO_ON, SILERO_OFF = 0.5, 0.35   # hysteresis (tools/silero_8k.py checks its model's decisions with it)
 
 
 @dataclass(frozen=True)
@@ -256,7 +256,7 @@ class SpeechPresence:
             self._session.run_with_iobinding(self._binding)
             self._silero_side = 1 - side
             p = self._silero_out[:, 0]
-            self._speaking = np.where(self._speaking, p >= _SILERO_OFF, p >= _SILERO_ON)
+            self._speaking = np.where(self._speaking, p >= SILERO_OFF, p >= SILERO_ON)
             self._held = np.where(self._speaking, self._hold_frames + 1, np.maximum(self._held - 1, 0))
             start += frame
         if start:

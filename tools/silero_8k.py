@@ -40,11 +40,12 @@ except ImportError:
     onnx = onnxsim = helper = numpy_helper = None
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+from stream.speech import SILERO_OFF, SILERO_ON  # noqa: E402  (the engine's hysteresis: the decisions compared)
 SOURCE = ROOT / "stream" / "models" / "silero_vad.onnx"
 TARGET = ROOT / "stream" / "models" / "silero_vad_8k.onnx"
 RATE_HZ, WINDOW = 8000, 288
 MAX_PROBABILITY_DIFF = 1e-5    # the matrix-product form against the two-rate model (module doc: 2.3e-6 measured)
-ON, OFF = 0.5, 0.35            # stream.speech's hysteresis (the decisions compared)
 
 
 def _inline(graph: onnx.GraphProto, node: onnx.NodeProto, branch: str) -> None:
@@ -105,7 +106,7 @@ def fix_rate(model: onnx.ModelProto) -> onnx.ModelProto:
 def compare(two_rate, fixed, x: np.ndarray) -> np.ndarray:
     """Run both models (onnxruntime sessions) over ``x`` (n_devices, n_samples) at 8 kHz in 32 ms windows, all
     devices in one call, the state carried from window to window. Raises unless every speech probability is
-    within ``MAX_PROBABILITY_DIFF`` and every hysteresis decision (``ON``/``OFF``, as ``stream.speech``) is the
+    within ``MAX_PROBABILITY_DIFF`` and every decision of ``stream.speech``'s hysteresis is the
     same; returns the two-rate model's speech probabilities, shape (n_windows, n_devices)."""
     sa = sb = np.zeros((2, len(x), 128), np.float32)
     context = np.zeros((len(x), WINDOW - 256), np.float32)
@@ -116,8 +117,8 @@ def compare(two_rate, fixed, x: np.ndarray) -> np.ndarray:
         context = window[:, -(WINDOW - 256):]
         pa, sa = two_rate.run(None, {"input": window, "state": sa, "sr": np.array(RATE_HZ, np.int64)})
         pb, sb = fixed.run(None, {"input": window, "state": sb})
-        on_a = np.where(on_a, pa[:, 0] >= OFF, pa[:, 0] >= ON)
-        on_b = np.where(on_b, pb[:, 0] >= OFF, pb[:, 0] >= ON)
+        on_a = np.where(on_a, pa[:, 0] >= SILERO_OFF, pa[:, 0] >= SILERO_ON)
+        on_b = np.where(on_b, pb[:, 0] >= SILERO_OFF, pb[:, 0] >= SILERO_ON)
         if np.abs(pa - pb).max() > MAX_PROBABILITY_DIFF or np.any(on_a != on_b):
             raise RuntimeError(f"window {len(p)}: the engine's model differs from the two-rate one "
                                f"(probabilities by {np.abs(pa - pb).max():.2g}, decisions {np.sum(on_a != on_b)})")
@@ -159,8 +160,9 @@ def as_matrix_products(fixed: onnx.ModelProto) -> onnx.ModelProto:
         """A kernel-3, padding-1 convolution's input: the three taps of every output frame side by side,
         (devices, n_out, 3 * channels)."""
         x = node("Pad", [x, "pad_frames"], f"{name}_padded")
-        parts = [node("Slice", [x, const(f"{name}_from{k}", [k]), const(f"{name}_to{k}", [k + stride * (n_out - 1) + 1]),
-                                "axis1", const(f"stride{stride}", [stride])], f"{name}_tap{k}") for k in range(3)]
+        last = stride * (n_out - 1)   # the first tap of the last output frame, in the padded frames
+        parts = [node("Slice", [x, const(f"{name}_from{k}", [k]), const(f"{name}_to{k}", [k + last + 1]), "axis1",
+                                const(f"stride{stride}", [stride])], f"{name}_tap{k}") for k in range(3)]
         return node("Concat", parts, f"{name}_taps", axis=2)
 
     def layer(x: str, name: str, kernel: np.ndarray, bias: np.ndarray, taps_used=slice(0, 3)) -> str:
@@ -214,7 +216,7 @@ def as_matrix_products(fixed: onnx.ModelProto) -> onnx.ModelProto:
     return model
 
 
-def check_same(fixed: onnx.ModelProto) -> int:
+def check_agrees(model: onnx.ModelProto) -> int:
     """:func:`compare` over the fixtures' devices; the number of windows compared."""
     import soxr
     x = []
@@ -223,7 +225,7 @@ def check_same(fixed: onnx.ModelProto) -> int:
             y, fs = sf.read(path, dtype="float32", frames=int(6.0 * 48000))
             x.append(soxr.resample(y if y.ndim == 1 else y.mean(axis=1), fs, RATE_HZ)[:int(5.0 * RATE_HZ)])
     x = np.stack([np.pad(y, (0, int(5.0 * RATE_HZ) - len(y))) for y in x]).astype(np.float32)
-    return len(compare(_session(onnx.load(str(SOURCE))), _session(fixed), x))
+    return len(compare(_session(onnx.load(str(SOURCE))), _session(model), x))
 
 
 def main() -> int:
@@ -231,7 +233,7 @@ def main() -> int:
         print("tools/silero_8k.py needs onnx and onnxsim: pip install -e \".[tools]\"", file=sys.stderr)
         return 1
     model = as_matrix_products(fix_rate(onnx.load(str(SOURCE))))
-    n = check_same(model)
+    n = check_agrees(model)
     onnx.save(model, str(TARGET))
     print(f"wrote {TARGET.relative_to(ROOT)} ({TARGET.stat().st_size} bytes, {len(model.graph.node)} nodes); "
           f"speech probabilities within {MAX_PROBABILITY_DIFF:g} of {SOURCE.name}'s and the same decisions over "
