@@ -941,12 +941,15 @@ class SourceTracker:
         within 0.1-0.5 ms of the talker on several pairs, its peaks fell in the talker track's gates in the
         pauses, and the talker track turned noise 1.4 s into the first pause (−0.98 dB against 4.7 with the truth)."""
         min_pairs = max(2, int(math.ceil(self.min_pair_fraction * n_ok)))
-        noise_pred = ([self._predicted(n)[0] for n in self.tracks if n.quiet_origin or n.quiet_born]
-                      if taken is not None and taken.any() else [])
+        near_noise = taken is not None and taken.any()
+        # each track predicted once (nothing here moves a filter): the confirmed ones, and the noise sources
+        predicted = {id(t): self._predicted(t) for t in self.tracks
+                     if t.kind != "tentative" or (near_noise and (t.quiet_origin or t.quiet_born))}
+        noise_pred = [predicted[id(n)][0] for n in self.tracks if n.quiet_origin or n.quiet_born] if near_noise else []
         for t in self.tracks:
             if t.kind == "tentative":
                 continue
-            pred, gate = self._predicted(t)
+            pred, gate = predicted[id(t)]
             ok = (np.abs(peak_tdoa - pred[:, None]) <= gate[:, None]) & (peak_value >= self.min_peak_value)
             if noise_pred and t.kind == "speech":
                 # only on the pairs where the talker is apart from every such source: a talker track on the
