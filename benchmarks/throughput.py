@@ -542,35 +542,36 @@ def bench_engine(repeats: int, audio_s: float, profile: bool) -> dict:
 TRACKS_SCENES = ("s14_noise_table_babble_5dB", "s42_two_talkers_table_white_10dB")   # 8 devices, 16 kHz
 
 
-def _inputs_16k(files: list, tmp: pathlib.Path) -> list[pathlib.Path]:
-    """The files resampled to 16 kHz (soxr, 16-bit WAV): devices that record at the issue's rate."""
+def _rewritten(files: list, tmp: pathlib.Path, name: str, change) -> list[pathlib.Path]:
+    """Every file through ``change(x, fs) -> (y, rate)``, written as 16-bit WAV (as the scene files' FLAC hold)
+    to ``tmp`` as ``name`` (a format string of the file's ``stem``) plus ".wav"."""
     import soundfile as sf
-    import soxr
 
     out = []
     for f in files:
         x, fs = sf.read(f, dtype="float32")
-        path = tmp / (pathlib.Path(f).stem + "_16k.wav")
-        sf.write(path, soxr.resample(x, fs, 16000), 16000, subtype="PCM_16")
+        y, rate = change(x, fs)
+        path = tmp / (name.format(stem=pathlib.Path(f).stem) + ".wav")
+        sf.write(path, y, rate, subtype="PCM_16")
         out.append(path)
     return out
+
+
+def _inputs_16k(files: list, tmp: pathlib.Path) -> list[pathlib.Path]:
+    """The files resampled to 16 kHz (soxr): devices that record at the issue's rate."""
+    import soxr
+
+    return _rewritten(files, tmp, "{stem}_16k", lambda x, fs: (soxr.resample(x, fs, 16000), 16000))
 
 
 def _first_half(files: list, tmp: pathlib.Path, tag: str) -> list[pathlib.Path]:
-    """The first half of every device file (the same seconds on every device, each at its own rate, 16-bit WAV
-    as the scene files' FLAC hold): the running cost of a stream is the difference between the whole input and
-    its first half, in which the start-up (numba caches, the speech model, the first alignment over the same
-    window) and the report cancel."""
+    """The first half of every device file (the same seconds on every device, each at its own rate): the
+    running cost of a stream is the difference between the whole input and its first half, in which the
+    start-up (numba caches, the speech model, the first alignment over the same window) and the report cancel."""
     import soundfile as sf
 
     seconds = min(sf.info(str(f)).duration for f in files) / 2
-    out = []
-    for f in files:
-        x, fs = sf.read(f, dtype="float32")
-        path = tmp / f"{tag}_{pathlib.Path(f).stem}_half.wav"
-        sf.write(path, x[:int(round(seconds * fs))], fs, subtype="PCM_16")
-        out.append(path)
-    return out
+    return _rewritten(files, tmp, tag + "_{stem}_half", lambda x, fs: (x[:int(round(seconds * fs))], fs))
 
 
 def _scene_inputs(data: pathlib.Path, tmp: pathlib.Path) -> dict[str, list]:
