@@ -11,8 +11,9 @@ convolution written as one matrix product over every device (``stream/models/sil
 it by ``tools/silero_8k.py``: without the export's branches, 90.8 -> 83.4 us per hop for 8 devices at 16 kHz,
 hop 128; as matrix products 84 -> 41 us per hop, the batched call 283 -> 104 us; the speech probability within
 2.3e-6 of the two-rate model's over the fixtures' 29 devices and not one decision different). A device speaks
-from a window with probability >= 0.5 until one below 0.35 (the model's recommended hysteresis). 8 kHz rather than the model's 16 kHz mode: the batched call costs about
-0.7 of the 16 kHz one with the resampling (285 against 407 us per window of 8 devices), which brings the engine
+from a window with probability >= 0.5 until one below 0.35 (the model's recommended hysteresis). 8 kHz rather
+than the model's 16 kHz mode: the batched call costs about 0.7 of the 16 kHz one with the resampling (285
+against 407 us per window of 8 devices, with the model's convolutions as shipped), which brings the engine
 with the tracker to the 5 % budget, and it is at least as accurate here: the kitchen recording alone at 10 dB is
 speech in 0 % of 10 ms frames (2 % at 16 kHz), with a talker over it the recall is 0.985 (0.952); every shipped
 fixture gained with the tracker (README, "Speech presence"). Chosen over WebRTC because WebRTC fires on
