@@ -46,6 +46,17 @@ compact arrays (all devices within 1.5 m) devices share coherent reflections/noi
 model over-credits neighbours and equal weights are 0.3-0.6 dB better (``weight_exponent=0.7``
 halves that loss at ~0.1 dB cost on spread arrays).
 
+``"level"``: equal weights on the channels brought to one noise floor, ``w_i ~ 1 / sigma_i`` with
+``sigma_i^2`` the geometric mean of channel ``i``'s frame power over the pauses (frames the caller marks so
+in :meth:`DelayAndSum.note_frame`; time constant ``level_time_constant_s``; counted after
+``level_min_pause_s`` of pauses), held within ``level_max_ratio`` of the median channel's, and not raised
+above it for a channel whose SNR is more than ``level_snr_margin_db`` below the median's. Devices of an
+ad-hoc array differ in gain by more than in what they hear (a phone against a laptop: 10-20 dB), and equal
+weights let the loudest-gain device own the beam; here every device counts by what it hears above its own
+floor, and a device next to a noise source counts less. Unlike ``"adaptive"`` nothing is fitted to the
+talker, so a wrong steering cannot move the weights. Measured on the generated scenes and the measured
+office (README, "Channel weights").
+
 Invalid channels (``valid[i] == False``, a non-finite ``toa_s[i]`` or any non-finite value in the
 channel's spectrum) get weight 0 and are left out of the statistics for that frame; the others are
 renormalised. NaN never reaches the output. With no valid channel the output frame is silent.
@@ -78,7 +89,7 @@ from .stft import StreamingIstft, StreamingStft, _synthesise, istft, stft
 
 __all__ = ["DelayAndSum", "delay_and_sum"]
 
-Weighting = Literal["equal", "adaptive"]
+Weighting = Literal["equal", "adaptive", "level"]
 
 _F64 = np.dtype(np.float64)
 _C64 = np.dtype(np.complex64)
@@ -93,19 +104,27 @@ _FORGET = 2       # forgetting factor lambda per frame
 _INV_SNR_MAX = 3  # 10^(-max_channel_snr_db / 10)
 _FLOOR = 4        # weight_floor
 _EXPONENT = 5     # weight_exponent
+_LEVEL_FORGET = 6  # forgetting factor per quiet frame of the noise-floor average ("level")
+_LEVEL_MAX = 7    # largest weight ratio of a channel to the median channel's ("level")
+_LEVEL_SNR_MARGIN = 8  # "level": a channel more than this (log power) below the median SNR is not boosted
+_LEVEL_MIN_MASS = 9   # "level": a floor counts once its bias-correction mass (frames, forgetting) reaches this
 # istate, int64:
 _N_UPDATES = 0    # frames that updated the rank-one fit (state)
-_ADAPTIVE = 1     # 1: adaptive weighting, 0: equal
+_ADAPTIVE = 1     # the weighting: _EQUAL, _MRC or _LEVEL
 _LO = 2           # statistics band: bins [lo, hi)
 _HI = 3
 _STARTUP_FRAMES = 4
 _STARTUP_ITER = 5
 _N_FINE = 6       # K: fine phasors per channel (see _steer)
-# f64, float64 (M + 1 + _N_WORK, M): the smoothed cross-power C (M rows), the gains g (1 row), then 9
+_EQUAL, _MRC, _LEVEL = 0, 1, 2
+_MODES = {"equal": _EQUAL, "adaptive": _MRC, "level": _LEVEL}
+# f64, float64 (M + 1 + _N_WORK, M): the smoothed cross-power C (M rows), the gains g (1 row), then 11
 # work rows: validity (0/1), e_1 = exp(i omega_1 toa), the running fine phasor, the rank-one fit's
-# gains, its products and the float64 weights.
-_N_WORK = 9
-_VALID, _E_RE, _E_IM, _F_RE, _F_IM, _G, _GM, _G_NEW, _W = range(_N_WORK)
+# gains, its products, the float64 weights, and the noise floors of "level" (state: the average log
+# power of each channel's quiet frames and its bias-correction mass).
+_N_WORK = 13
+_VALID, _E_RE, _E_IM, _F_RE, _F_IM, _G, _GM, _G_NEW, _W, _LOG_FLOOR, _FLOOR_MASS, _LOG_SPEECH, _SPEECH_MASS = \
+    range(_N_WORK)
 # f32, float32: [channel weights (M) | fine phasors (M, 2, K) | steering row (2 J K)].
 _TWO_PI = 2.0 * math.pi
 
@@ -168,6 +187,78 @@ def _steer(x: np.ndarray, kr: float, ki: float, fine: np.ndarray, row: np.ndarra
             si = row[2 * t + 1]
             out[2 * t] = xr * sr - xi * si
             out[2 * t + 1] = xr * si + xi * sr
+
+
+@numba.njit(cache=True, nogil=True)
+def _learn_floors(X: np.ndarray, valid: np.ndarray, work: np.ndarray, fstate: np.ndarray, pause: bool) -> None:
+    """``"level"``: one frame's power ``p_i = sum_b |X_i(b)|^2`` of each valid channel into its noise floor
+    (a ``pause``: nobody speaks) or its speech level (otherwise), each the bias-corrected exponential average
+    of ``log p_i`` (``L_i += (log p_i - L_i) / m_i``, ``m_i = lambda m_i + 1``). A frame of digital silence
+    or with a non-finite value leaves both alone."""
+    floor = work[_LOG_FLOOR] if pause else work[_LOG_SPEECH]
+    mass = work[_FLOOR_MASS] if pause else work[_SPEECH_MASS]
+    lam = fstate[_LEVEL_FORGET]
+    for i in range(X.shape[0]):
+        if valid[i]:
+            p = 0.0
+            for b in range(X.shape[1]):
+                v = X[i, b]
+                p += v.real * v.real + v.imag * v.imag
+            if p > 1e-30 and math.isfinite(p):
+                mass[i] = lam * mass[i] + 1.0
+                floor[i] += (math.log(p) - floor[i]) / mass[i]
+
+
+@numba.njit(cache=True, nogil=True)
+def _level_weights(work: np.ndarray, fstate: np.ndarray, n_ok: int, weights: np.ndarray) -> None:
+    """``"level"``: equal weights on the channels brought to one noise floor (:func:`_learn_floors`),
+    ``w_i = exp(-L_i / 2)``, held within ``[1 / r, r]`` times the median valid channel's
+    (``r = fstate[_LEVEL_MAX]``), normalised to sum to 1 over the valid channels. A floor counts once
+    ``fstate[_LEVEL_MIN_MASS]`` frames of pauses made it (a few frames at a talker's onset or in a
+    reverberant tail are not a floor); a channel without one counts as the median channel, and with none
+    the weights are equal. A channel whose floor is below the median but whose SNR (speech level over
+    floor) is more than ``fstate[_LEVEL_SNR_MARGIN]`` below the median SNR is not raised above the median:
+    its floor is low because its own electronics are quiet, not because its gain is (``async_8dev``'s device
+    5: 15 dB of gain down, a floor 15 dB down, 8 dB less SNR)."""
+    m = work.shape[1]
+    ok = work[_VALID]
+    floor = work[_LOG_FLOOR]
+    mass = work[_FLOOR_MASS]
+    floors = np.empty(n_ok)
+    k = 0
+    for i in range(m):
+        if ok[i] and mass[i] >= fstate[_LEVEL_MIN_MASS]:
+            floors[k] = floor[i]
+            k += 1
+    if k == 0:
+        w = np.float32(1.0) / np.float32(n_ok)
+        for i in range(m):
+            weights[i] = w if ok[i] else np.float32(0.0)
+        return
+    middle = np.median(floors[:k])
+    # each channel's SNR (log speech-frame power over its floor) against the median channel's
+    speech = work[_LOG_SPEECH]
+    smass = work[_SPEECH_MASS]
+    k2 = 0
+    for i in range(m):
+        if ok[i] and mass[i] >= fstate[_LEVEL_MIN_MASS] and smass[i] > 0.0:
+            floors[k2] = speech[i] - floor[i]
+            k2 += 1
+    snr_mid = np.median(floors[:k2]) if k2 > 0 else 0.0
+    snr_margin = fstate[_LEVEL_SNR_MARGIN]
+    limit = math.log(fstate[_LEVEL_MAX])
+    w64 = work[_W]
+    total = 0.0
+    for i in range(m):
+        if ok[i]:
+            e = -0.5 * (floor[i] - middle) if mass[i] >= fstate[_LEVEL_MIN_MASS] else 0.0
+            e = min(max(e, -limit), limit)
+            if e > 0.0 and k2 > 0 and smass[i] > 0.0 and speech[i] - floor[i] < snr_mid - snr_margin:
+                e = 0.0   # a low floor but a low SNR too: its own quiet electronics, not a low gain
+            w64[i] = math.exp(e)
+            total += w64[i]
+    for i in range(m):
+        weights[i] = np.float32(w64[i] / total) if ok[i] else np.float32(0.0)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -304,8 +395,15 @@ def _beamform(X: np.ndarray, toa: np.ndarray, valid: np.ndarray, f64: np.ndarray
             fine[i, 0, k] = fr[i]
             fine[i, 1, k] = fi[i]
             fr[i], fi[i] = fr[i] * er[i] - fi[i] * ei[i], fr[i] * ei[i] + fi[i] * er[i]
-    adaptive = istate[_ADAPTIVE] != 0
-    if not adaptive:
+    mode = istate[_ADAPTIVE]
+    if mode == _LEVEL:
+        _level_weights(f64[m + 1 :], fstate, n_ok, weights)
+        y[:] = 0.0
+        for i in range(m):
+            if ok[i]:
+                _steer(xf[i], fr[i], fi[i], fine[i], row, np.float64(weights[i]), y, True)
+        return
+    if mode == _EQUAL:
         w = np.float32(1.0) / np.float32(n_ok)
         y[:] = 0.0
         for i in range(m):
@@ -417,7 +515,7 @@ class DelayAndSum:
         Hop in samples, ``1 <= hop_samples <= frame_samples``.
     sample_rate_hz : float
         Common (nominal) sample rate in hertz, used to turn ``toa_s`` into phase.
-    weighting : {"equal", "adaptive"}, optional
+    weighting : {"equal", "adaptive", "level"}, optional
         Channel weighting (see the module docstring). Default ``"adaptive"``.
     window : str or ndarray, shape (frame_samples,), optional
         Analysis window (periodic Hann by default); it must be the one used for the spectra.
@@ -436,6 +534,18 @@ class DelayAndSum:
         ``p`` in ``w_i ~ (g_i / sigma_i^2)^p``, in ``[0, 1]``: 1 is MRC (default), 0 equal weights.
         Values around 0.7 hedge for compact arrays where devices share coherent reflections or noise
         (the rank-one model then over-credits neighbouring devices) at a small cost on spread arrays.
+    level_time_constant_s : float, optional
+        ``"level"``: time constant of each channel's noise-floor and speech-level averages, in seconds of
+        pauses and of speech (:meth:`note_frame`). Default 3 s.
+    level_max_ratio : float, optional
+        ``"level"``: a channel's weight stays within this factor of the median channel's
+        (default 4: 12 dB either way), so that a dead-quiet or a swamped channel cannot take or lose
+        the beam alone.
+    level_snr_margin_db : float, optional
+        ``"level"``: a channel whose SNR is more than this below the median channel's is not raised above
+        the median's weight, however low its floor. Default 3 dB.
+    level_min_pause_s : float, optional
+        ``"level"``: a channel's floor counts after this much of pauses. Default 0.5 s.
 
     Attributes
     ----------
@@ -464,13 +574,25 @@ class DelayAndSum:
         max_channel_snr_db: float = 20.0,
         weight_floor: float = 0.0,
         weight_exponent: float = 1.0,
+        level_time_constant_s: float = 3.0,
+        level_max_ratio: float = 4.0,
+        level_snr_margin_db: float = 3.0,
+        level_min_pause_s: float = 0.5,
     ) -> None:
         if int(n_channels) != n_channels or n_channels < 1:
             raise ValueError(f"{n_channels=} must be an integer >= 1")
         if not (np.isfinite(sample_rate_hz) and sample_rate_hz > 0):
             raise ValueError(f"{sample_rate_hz=} must be a positive number of hertz")
-        if weighting not in ("equal", "adaptive"):
-            raise ValueError(f"{weighting=} must be 'equal' or 'adaptive'")
+        if weighting not in _MODES:
+            raise ValueError(f"{weighting=} must be 'equal', 'adaptive' or 'level'")
+        if not (np.isfinite(level_time_constant_s) and level_time_constant_s > 0):
+            raise ValueError(f"{level_time_constant_s=} must be a positive number of seconds")
+        if not (np.isfinite(level_max_ratio) and level_max_ratio >= 1):
+            raise ValueError(f"{level_max_ratio=} must be a number >= 1")
+        if not (np.isfinite(level_snr_margin_db) and level_snr_margin_db >= 0):
+            raise ValueError(f"{level_snr_margin_db=} must be a number of dB >= 0")
+        if not (np.isfinite(level_min_pause_s) and level_min_pause_s >= 0):
+            raise ValueError(f"{level_min_pause_s=} must be a number of seconds >= 0")
         if not (np.isfinite(weight_time_constant_s) and weight_time_constant_s > 0):
             raise ValueError(f"{weight_time_constant_s=} must be a positive number of seconds")
         low_hz, high_hz = (float(f) for f in weight_band_hz)
@@ -514,15 +636,20 @@ class DelayAndSum:
 
         # Kernel parameters and state (layouts at the top of the module).
         self._fstate = np.array([0.0, bin_hz, self._forget, self._inv_snr_max, float(weight_floor),
-                                 float(weight_exponent)])
+                                 float(weight_exponent),
+                                 float(np.exp(-self.hop_samples / (self.sample_rate_hz * level_time_constant_s))),
+                                 float(level_max_ratio),
+                                 float(level_snr_margin_db) * math.log(10.0) / 10.0,
+                                 float(level_min_pause_s) * self.sample_rate_hz / self.hop_samples])
         # Steering blocks: K fine phasors per channel, K a power of two >= sqrt(n_bins) so that
         # the K-long product rows and the n_bins / K coarse steps balance.
         n_fine = max(2, 1 << int(np.ceil(np.log2(np.sqrt(self.n_bins)))))
         n_blocks = -(-self.n_bins // n_fine)
-        self._istate = np.array([0, int(weighting == "adaptive"), self._stats_bins.start, self._stats_bins.stop,
+        self._istate = np.array([0, _MODES[weighting], self._stats_bins.start, self._stats_bins.stop,
                                  self._startup_frames, self._startup_iter, n_fine], dtype=np.int64)
         self._f64 = np.zeros((m + 1 + _N_WORK, m))
         self._stats = self._f64[: m + 1]  # C, then the gains g
+        self._level_work = self._f64[m + 1 :]
         self._f32 = np.zeros(m + 2 * m * n_fine + 2 * n_blocks * n_fine, dtype=np.float32)
         self._weights = self._f32[:m]
         self._aligned = np.zeros((m + 1, self.n_bins), dtype=np.complex64)  # Z_i, then Y
@@ -541,14 +668,35 @@ class DelayAndSum:
         self._stft.reset()
         self._istft.reset()
         self._stats.fill(0.0)
+        self._f64[self.n_channels + 1 + _LOG_FLOOR].fill(0.0)
+        self._f64[self.n_channels + 1 + _FLOOR_MASS].fill(0.0)
+        self._f64[self.n_channels + 1 + _LOG_SPEECH].fill(0.0)
+        self._f64[self.n_channels + 1 + _SPEECH_MASS].fill(0.0)
         self._fstate[_MASS] = 0.0
         self._istate[_N_UPDATES] = 0
         self._weights.fill(np.float32(1.0 / self.n_channels))
 
     @property
     def weighting(self) -> Weighting:
-        """``"equal"`` or ``"adaptive"``, as constructed (the kernels read it from their state)."""
-        return "adaptive" if self._istate[_ADAPTIVE] else "equal"
+        """``"equal"``, ``"adaptive"`` or ``"level"``, as constructed (the kernels read it from their state)."""
+        return next(k for k, v in _MODES.items() if v == self._istate[_ADAPTIVE])
+
+    def note_frame(self, spectra: np.ndarray, valid: np.ndarray | None = None, *, pause: bool) -> None:
+        """``"level"``: the frame ``spectra`` (n_bins, n_channels) updates every ``valid`` channel's noise
+        floor if it is a ``pause`` (no talker: the pipeline asks its speech detector), its speech level
+        otherwise. Call it before the frame's :meth:`process_spectra`, with every device the stream has (not
+        only those the frame's beam takes). Nothing happens with another weighting; without a call, "level"
+        is equal weighting."""
+        if self._istate[_ADAPTIVE] != _LEVEL:
+            return
+        if valid is None:
+            valid = self._all_valid
+        if getattr(spectra, "dtype", None) is _C64 and spectra.shape == self._x_shape \
+                and getattr(valid, "dtype", None) is _BOOL and valid.shape == self._m_shape:
+            _learn_floors(spectra.T, valid, self._level_work, self._fstate, pause)   # the usual inputs as they are
+        else:   # converted, shapes checked (the kernel does not check them)
+            X, _, ok = self._converted(spectra, np.zeros(self.n_channels), valid)
+            _learn_floors(X, ok, self._level_work, self._fstate, pause)
 
     @property
     def channel_weights(self) -> np.ndarray:

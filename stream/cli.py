@@ -56,7 +56,9 @@ def _add_engine_options(p: argparse.ArgumentParser) -> None:
     g.add_argument("--frame-samples", type=int, help="analysis frame (default: ~85 ms, 4096 at 48 kHz)")
     g.add_argument("--hop-samples", type=int, help="hop (default: frame/4, 75%% overlap); e.g. 512/128 for low latency")
     g.add_argument("--max-tdoa-s", type=float, help="largest fine TDOA searched by GCC-PHAT, in seconds")
-    g.add_argument("--weighting", choices=["equal", "adaptive"], help="delay-and-sum channel weights")
+    g.add_argument("--weighting", choices=["equal", "adaptive", "level"],
+                   help="delay-and-sum channel weights (default level: equal weights on the devices brought to "
+                        "one noise floor, learnt in the speech detector's pauses; equal without a detector)")
     g.add_argument("--accel-std-s-per-s2", type=float, help="Kalman process noise: TOA acceleration std")
     g.add_argument("--tdoa-std-s", type=float, help="Kalman measurement noise: TDOA std in seconds")
     g.add_argument("--gate-probability", type=float, help="Kalman clutter gate (chi-square probability)")
@@ -363,8 +365,11 @@ def summary(report: dict[str, Any], out: Path) -> str:
         row("enhanced (this run)", "engine")
         other = "adaptive" if report["settings"]["weighting"] == "equal" else "equal"
         row(f"estimated TOA, {other} weights", f"estimated_toa_{other}_weights")
-        row("true TOA, async input", f"true_toa_async_{report['settings']['weighting']}")
-        row("true TOA, synchronous signals", f"true_toa_sync_{report['settings']['weighting']}")
+        own = report["settings"]["weighting"] if report["settings"]["weighting"] != "level" else "equal"
+        row(f"true TOA, async input{', equal' if own != report['settings']['weighting'] else ''}",
+            f"true_toa_async_{own}")
+        row(f"true TOA, synchronous{', equal' if own != report['settings']['weighting'] else ''}",
+            f"true_toa_sync_{own}")
         b = enh.get("best_single_device")
         if b:
             row(f"best single device ({b['device']})", "best_single_device")

@@ -28,7 +28,7 @@ from .errors import ConfigError
 
 Estimator = Literal["tracks", "subset", "pinv", "kalman", "smoother"]
 GccWeighting = Literal["subtract", "subtract-snr", "phat"]
-Weighting = Literal["equal", "adaptive"]
+Weighting = Literal["equal", "adaptive", "level"]
 CalibrationMethod = Literal["hybrid", "baseline"]
 CalibrationApply = Literal["drift", "offsets", "none"]
 CalibrationExecutor = Literal["thread", "process"]
@@ -51,7 +51,8 @@ class EngineConfig:
     frame_samples: int | None = None
     hop_samples: int | None = None
     max_tdoa_s: float = 0.012
-    weighting: Weighting = "equal"
+    weighting: Weighting = "level"   # beamform.DelayAndSum; "level" learns from the tracker's speech detector
+    # (the other estimators have none: for them it is "equal")
     # Kalman TOA (eqs. 13-17)
     accel_std_s_per_s2: float = 1e-3
     tdoa_std_s: float = 5e-4
@@ -172,8 +173,8 @@ class EngineConfig:
                 raise ConfigError(f"{name}={getattr(self, name)} must be > 0")
         if not (math.isfinite(self.switch_ratio) and self.switch_ratio >= 1):
             raise ConfigError(f"switch_ratio={self.switch_ratio} must be >= 1")
-        if self.weighting not in ("equal", "adaptive"):
-            raise ConfigError(f"weighting={self.weighting!r} must be 'equal' or 'adaptive'")
+        if self.weighting not in ("equal", "adaptive", "level"):
+            raise ConfigError(f"weighting={self.weighting!r} must be 'equal', 'adaptive' or 'level'")
         if self.working_rate_hz is not None and not 1000 <= self.working_rate_hz <= 384000:
             raise ConfigError(f"working_rate_hz={self.working_rate_hz} must be in 1000..384000 Hz")
         if self.frame_samples is not None and not 32 <= self.frame_samples <= 65536:

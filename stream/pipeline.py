@@ -332,6 +332,8 @@ class Pipeline:
                                           max_tdoa_s=config.max_tdoa_s)
             self.estimator = make_estimator(config, self.n_devices)
         self._reference_only = np.zeros(self.n_devices, bool)
+        self._speech_threshold = self.tracker.speech_threshold if self.tracker is not None else 0.5
+        self._level = config.weighting == "level"
         self.das = beamform.DelayAndSum(self.n_devices, frame_samples=config.frame_samples,
                                         hop_samples=config.hop_samples, sample_rate_hz=fs,
                                         weighting=config.weighting)
@@ -380,9 +382,10 @@ class Pipeline:
         elif self.gcc is not None:
             estimators.GccPhat(m, n_fft=cfg.frame_samples, sample_rate_hz=cfg.working_rate_hz,
                                max_tdoa_s=cfg.max_tdoa_s).process(spectra, valid=np.ones(m, bool))
-        beamform.DelayAndSum(m, frame_samples=cfg.frame_samples, hop_samples=cfg.hop_samples,
-                             sample_rate_hz=cfg.working_rate_hz, weighting=cfg.weighting
-                             ).process_spectra(spectra, np.zeros(m), valid=np.ones(m, bool))
+        das = beamform.DelayAndSum(m, frame_samples=cfg.frame_samples, hop_samples=cfg.hop_samples,
+                                   sample_rate_hz=cfg.working_rate_hz, weighting=cfg.weighting)
+        das.note_frame(spectra, np.ones(m, bool), pause=True)
+        das.process_spectra(spectra, np.zeros(m), valid=np.ones(m, bool))
         if m >= 2 and self.tracker is None and self._steering is None:
             # the estimator's kernels
             estimator = make_estimator(cfg, m)
@@ -603,6 +606,9 @@ class Pipeline:
                gated: bool, track_id: int, p_speech: float) -> None:
         """Delay-and-sum of one frame's spectra steered by ``fine``; record it and queue its hop."""
         r = self.aligner.time_reference
+        if self._level and p_speech == p_speech:
+            # "level" weighting: every device's noise floor from the pauses, its speech level from the rest
+            self.das.note_frame(spectra, block.valid, pause=p_speech < self._speech_threshold)
         enhanced = self.das.process_spectra(spectra, fine - fine[r] if r else fine, valid=valid)
         toa = ToaEstimate(block.seq, time_s, block.offsets_samples / self.config.working_rate_hz + fine, gated,
                           track_id, p_speech)

@@ -514,3 +514,102 @@ def test_spectra_layout_does_not_change_the_output():
     a, b, frames = _twin_beamformers(11)
     for X, toa in frames:  # X channel-major
         np.testing.assert_array_equal(a.process_spectra(X, toa), b.process_spectra(np.ascontiguousarray(X), toa))
+
+
+def _stream_quiet(das: DelayAndSum, x: np.ndarray, quiet: np.ndarray) -> np.ndarray:
+    """``_stream`` at zero TOA, marking each hop a pause or not (as the pipeline does from its speech detector)."""
+    hop = das.hop_samples
+    stft = StreamingStft(x.shape[1], frame_samples=das.frame_samples, hop_samples=hop)
+    out = []
+    for k in range(x.shape[0] // hop):
+        spectra = stft.process(x[k * hop : (k + 1) * hop])
+        das.note_frame(spectra, pause=bool(quiet[k]))
+        out.append(das.process_spectra(spectra, np.zeros(x.shape[1])))
+    return np.concatenate(out)
+
+
+def test_level_weights_undo_the_devices_gains_and_learn_only_in_pauses():
+    # one talker heard alike by 4 devices, each with its own acoustic noise of one level, recorded at gains 12 dB
+    # apart: equal weights let the loud device own the beam (its noise too); "level" brings every device to one
+    # noise floor, which is delay-and-sum on equal-gain devices
+    rng = np.random.default_rng(11)
+    frame, hop = 512, 128
+    n = int(6 * FS_HZ)
+    talk = _speechlike(n, rng)
+    talk[: n // 3] = 0.0                                  # 2 s of noise first: the pause the floors learn from
+    gains = np.array([1.0, 0.25, 2.0, 1.0])
+    noise = 0.1 * rng.standard_normal((n, 4))
+    x = ((talk[:, None] + noise) * gains).astype(np.float32)
+    quiet = np.arange(n // hop) * hop < n // 3
+    lat = frame - hop
+    out, weights = {}, {}
+    for weighting in ("equal", "level"):
+        das = DelayAndSum(4, frame_samples=frame, hop_samples=hop, sample_rate_hz=FS_HZ, weighting=weighting)
+        assert das.weighting == weighting
+        y = _stream_quiet(das, x, quiet)
+        s0 = n // 3 + frame
+        out[weighting] = _si_sdr_db(y[s0 + lat :], talk[s0 : len(y) - lat])
+        weights[weighting] = das.channel_weights
+    np.testing.assert_allclose(weights["level"], (1 / gains) / np.sum(1 / gains), rtol=0.02)
+    equal_gain = (talk[:, None] + noise).mean(axis=1)     # the bound: the devices at one gain, averaged
+    bound = _si_sdr_db(equal_gain[n // 3 + frame :], talk[n // 3 + frame :])
+    assert out["level"] > out["equal"] + 1.0   # the gains cost equal weights 1.3 dB: (sum g)^2 / (M sum g^2) = 0.74
+    assert out["level"] == pytest.approx(bound, abs=0.3)
+    # the talker's frames (not quiet) leave the floors alone, however loud
+    das = DelayAndSum(4, frame_samples=frame, hop_samples=hop, sample_rate_hz=FS_HZ, weighting="level")
+    _stream_quiet(das, x[: n // 3], quiet[: n // 3 // hop])
+    before = das.channel_weights
+    loud = (np.stack([talk * 40, talk, talk, talk], axis=1)[n // 3 :] * gains).astype(np.float32)
+    _stream_quiet(das, loud, np.zeros(len(loud) // hop, bool))
+    np.testing.assert_array_equal(das.channel_weights, before)
+
+
+def test_level_weights_are_held_within_their_ratio_and_survive_silence():
+    frame, hop = 256, 64
+    rng = np.random.default_rng(12)
+    n = hop * 200
+    x = rng.standard_normal((n, 3)).astype(np.float32) * np.array([1.0, 1e-4, 1.0], np.float32)
+    x[:, 2] = 0.0                                             # digital silence: no floor, no division by zero
+    das = DelayAndSum(3, frame_samples=frame, hop_samples=hop, sample_rate_hz=FS_HZ, weighting="level",
+                      level_max_ratio=4.0)
+    _stream_quiet(das, x, np.ones(n // hop, bool))
+    w = das.channel_weights
+    assert np.all(np.isfinite(w)) and w.sum() == pytest.approx(1.0, rel=1e-6)
+    # the median of the two floors is their middle, 40 dB from each: both held to 4 times it; the silent channel
+    # (no floor yet) counts as the median
+    np.testing.assert_allclose(w, np.array([1 / 4, 4, 1]) / 5.25, rtol=1e-5)
+    x[:, 2] = rng.standard_normal(n) * 1.0
+    _stream_quiet(das, x, np.ones(n // hop, bool))
+    w = das.channel_weights
+    assert w[1] / np.median(w) == pytest.approx(4.0, rel=1e-5)   # 80 dB quieter, but held to 4 times the median
+    assert w[0] == pytest.approx(w[2], rel=0.05)
+    with pytest.raises(ValueError, match="level_max_ratio"):
+        DelayAndSum(2, frame_samples=frame, hop_samples=hop, sample_rate_hz=FS_HZ, level_max_ratio=0.5)
+
+
+def test_a_floor_counts_after_half_a_second_of_pauses_and_quiet_electronics_are_not_boosted():
+    frame, hop = 512, 128
+    rng = np.random.default_rng(13)
+    n = int(4 * FS_HZ)
+    talk = _speechlike(n, rng)
+    # devices 0-2: one talker and one room noise at gains 1, 1, 0.5 (device 2's floor 6 dB low: boosted); device 3
+    # hears the talker 40 dB down over its own electronics 30 dB below the room: the lowest floor, and 10 dB less SNR
+    room = 0.05 * rng.standard_normal((n, 4))
+    gains = np.array([1.0, 1.0, 0.5, 0.01])
+    x = (talk[:, None] + room) * gains
+    x[:, 3] = 0.01 * talk + 0.0016 * rng.standard_normal(n)
+    x = x.astype(np.float32)
+    n_pause = int(0.25 * FS_HZ) // hop
+    das = DelayAndSum(4, frame_samples=frame, hop_samples=hop, sample_rate_hz=FS_HZ, weighting="level")
+    pauses = x.copy()
+    pauses[:, :3] -= talk[:, None] * gains[None, :3]
+    pauses[:, 3] -= 0.01 * talk
+    _stream_quiet(das, pauses[: n_pause * hop], np.ones(n_pause, bool))
+    np.testing.assert_array_equal(das.channel_weights, np.float32(0.25))   # 0.25 s of pauses: no floor counts yet
+    _stream_quiet(das, pauses[n_pause * hop :], np.ones(len(pauses) // hop - n_pause, bool))
+    _stream_quiet(das, x, np.zeros(n // hop, bool))                          # the talker: speech levels, SNRs
+    w = das.channel_weights
+    assert w[2] / w[0] == pytest.approx(2.0, rel=0.05)   # a lower gain, the same SNR: its floor brought up
+    assert w[1] / w[0] == pytest.approx(1.0, rel=0.05)
+    # a floor 30 dB low, but 10 dB less SNR: held at the median floor's weight (halfway between devices 1 and 2)
+    assert w[3] == pytest.approx(np.sqrt(w[1] * w[2]), rel=1e-4)

@@ -347,3 +347,19 @@ def test_the_tracker_follows_a_drifting_clock_on_speech_and_the_report_states_it
     spectra = out.report["stream"]["spectra_drift_ppm"]
     print(spectra)
     assert spectra[0] == 0.0 and abs(spectra[1] - 100.0) < 5.0 and abs(spectra[2]) < 5.0, spectra
+
+
+def test_level_weights_learn_from_the_speech_detectors_pauses_only(tmp_path):
+    """``weighting="level"`` learns each device's floor in the pauses the speech detector finds: with the tracker on
+    `kitchen_noise` (dishes from 2 s before the talker) the devices get unequal weights, each within 4 times the
+    median's; an estimator without a detector has no pauses to learn from, and its output is equal weighting's to
+    the bit."""
+    fx = REPO_FIXTURES / "kitchen_noise"
+    base = dict(plots=False, progress=False)
+    t = run_replay([fx], tmp_path / "t", config=EngineConfig(**base, weighting="level"))
+    w = np.asarray(t.report["stream"]["final_channel_weights"])
+    assert w.sum() == pytest.approx(1.0, rel=1e-5)
+    assert np.ptp(w) > 0.02 and np.all(w <= 4 * np.median(w) + 1e-6) and np.all(w >= np.median(w) / 4 - 1e-6)
+    k = {wt: run_replay([fx], tmp_path / wt, config=EngineConfig(**base, estimator="kalman", weighting=wt))
+         for wt in ("equal", "level")}
+    np.testing.assert_array_equal(k["equal"].pipeline.enhanced_signal(), k["level"].pipeline.enhanced_signal())

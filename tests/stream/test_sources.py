@@ -215,7 +215,8 @@ def test_without_a_talker_or_a_noise_source_the_output_is_the_devices_average(tm
     assert set(s.track_id) == {-1}
     assert all(report["stream"]["aligned"])
     w = np.vstack(s.weights)[np.vstack(s.valid).all(axis=1)]
-    assert len(w) > 200 and np.allclose(w, 1.0 / n_dev, atol=1e-6)
+    # the default "level" weights: the devices' floors are alike here, so the weights are nearly equal
+    assert len(w) > 200 and np.allclose(w, 1.0 / n_dev, rtol=0.1)
     y, _ = sf.read(out / "enhanced.wav", dtype="float32")
     x0, _ = sf.read(paths[0], dtype="float32")
     quiet = np.mean(y[fs:-fs] ** 2) / np.mean(x0[fs:len(y) - fs] ** 2)
