@@ -104,7 +104,7 @@ _FORGET = 2       # forgetting factor lambda per frame
 _INV_SNR_MAX = 3  # 10^(-max_channel_snr_db / 10)
 _FLOOR = 4        # weight_floor
 _EXPONENT = 5     # weight_exponent
-_LEVEL_FORGET = 6  # forgetting factor per quiet frame of the noise-floor average ("level")
+_LEVEL_FORGET = 6  # "level": forgetting factor per frame of the noise-floor and speech-level averages
 _LEVEL_MAX = 7    # largest weight ratio of a channel to the median channel's ("level")
 _LEVEL_SNR_MARGIN = 8  # "level": a channel more than this (log power) below the median SNR is not boosted
 _LEVEL_MIN_MASS = 9   # "level": a floor counts once its bias-correction mass (frames, forgetting) reaches this
@@ -118,10 +118,10 @@ _STARTUP_ITER = 5
 _N_FINE = 6       # K: fine phasors per channel (see _steer)
 _EQUAL, _MRC, _LEVEL = 0, 1, 2
 _MODES = {"equal": _EQUAL, "adaptive": _MRC, "level": _LEVEL}
-# f64, float64 (M + 1 + _N_WORK, M): the smoothed cross-power C (M rows), the gains g (1 row), then 11
+# f64, float64 (M + 1 + _N_WORK, M): the smoothed cross-power C (M rows), the gains g (1 row), then 13
 # work rows: validity (0/1), e_1 = exp(i omega_1 toa), the running fine phasor, the rank-one fit's
-# gains, its products, the float64 weights, and the noise floors of "level" (state: the average log
-# power of each channel's quiet frames and its bias-correction mass).
+# gains, its products, the float64 weights, and the state of "level": each channel's average log power
+# over the pauses (its noise floor) and its bias-correction mass, then the same over speech frames.
 _N_WORK = 13
 _VALID, _E_RE, _E_IM, _F_RE, _F_IM, _G, _GM, _G_NEW, _W, _LOG_FLOOR, _FLOOR_MASS, _LOG_SPEECH, _SPEECH_MASS = \
     range(_N_WORK)
@@ -591,8 +591,9 @@ class DelayAndSum:
             raise ValueError(f"{level_max_ratio=} must be a number >= 1")
         if not (np.isfinite(level_snr_margin_db) and level_snr_margin_db >= 0):
             raise ValueError(f"{level_snr_margin_db=} must be a number of dB >= 0")
-        if not (np.isfinite(level_min_pause_s) and level_min_pause_s >= 0):
-            raise ValueError(f"{level_min_pause_s=} must be a number of seconds >= 0")
+        if not (np.isfinite(level_min_pause_s) and 0 <= level_min_pause_s < level_time_constant_s):
+            raise ValueError(f"{level_min_pause_s=} must be a number of seconds >= 0 and below "
+                             f"{level_time_constant_s=} (the averages' mass never reaches more)")
         if not (np.isfinite(weight_time_constant_s) and weight_time_constant_s > 0):
             raise ValueError(f"{weight_time_constant_s=} must be a positive number of seconds")
         low_hz, high_hz = (float(f) for f in weight_band_hz)
@@ -668,10 +669,7 @@ class DelayAndSum:
         self._stft.reset()
         self._istft.reset()
         self._stats.fill(0.0)
-        self._f64[self.n_channels + 1 + _LOG_FLOOR].fill(0.0)
-        self._f64[self.n_channels + 1 + _FLOOR_MASS].fill(0.0)
-        self._f64[self.n_channels + 1 + _LOG_SPEECH].fill(0.0)
-        self._f64[self.n_channels + 1 + _SPEECH_MASS].fill(0.0)
+        self._level_work[_LOG_FLOOR:].fill(0.0)   # the floors, the speech levels and their masses
         self._fstate[_MASS] = 0.0
         self._istate[_N_UPDATES] = 0
         self._weights.fill(np.float32(1.0 / self.n_channels))

@@ -585,6 +585,8 @@ def test_level_weights_are_held_within_their_ratio_and_survive_silence():
     assert w[0] == pytest.approx(w[2], rel=0.05)
     with pytest.raises(ValueError, match="level_max_ratio"):
         DelayAndSum(2, frame_samples=frame, hop_samples=hop, sample_rate_hz=FS_HZ, level_max_ratio=0.5)
+    with pytest.raises(ValueError, match="level_min_pause_s"):   # a floor that could never count
+        DelayAndSum(2, frame_samples=frame, hop_samples=hop, sample_rate_hz=FS_HZ, level_min_pause_s=3.0)
 
 
 def test_a_floor_counts_after_half_a_second_of_pauses_and_quiet_electronics_are_not_boosted():
