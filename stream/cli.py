@@ -362,7 +362,7 @@ def summary(report: dict[str, Any], out: Path) -> str:
                 ssara = _fmt(v.get("ssara_db"), "6.2f")
                 lines.append(f"  {name:<34} SI-SDR {_fmt(v['si_sdr_db'], '6.2f')} dB  STOI {_fmt(v['stoi'], '.3f')}"
                              + (f"  SSARA {ssara} dB" if ssara != "n/a" else ""))
-        row("enhanced (this run)", "engine")
+        row(f"enhanced ({report['settings']['weighting']} weights)", "engine")
         other = "adaptive" if report["settings"]["weighting"] == "equal" else "equal"
         row(f"estimated TOA, {other} weights", f"estimated_toa_{other}_weights")
         own = report["settings"]["weighting"] if report["settings"]["weighting"] != "level" else "equal"
