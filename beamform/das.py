@@ -210,13 +210,13 @@ def _learn_floors(X: np.ndarray, valid: np.ndarray, work: np.ndarray, fstate: np
 
 
 @numba.njit(cache=True, nogil=True)
-def _level_weights(work: np.ndarray, fstate: np.ndarray, n_ok: int, weights: np.ndarray) -> None:
+def _level_weights(work: np.ndarray, fstate: np.ndarray, n_ok: int, weights: np.ndarray) -> bool:
     """``"level"``: equal weights on the channels brought to one noise floor (:func:`_learn_floors`),
     ``w_i = exp(-L_i / 2)``, held within ``[1 / r, r]`` times the median valid channel's
     (``r = fstate[_LEVEL_MAX]``), normalised to sum to 1 over the valid channels. A floor counts once
     ``fstate[_LEVEL_MIN_MASS]`` frames of pauses made it (a few frames at a talker's onset or in a
-    reverberant tail are not a floor); a channel without one counts as the median channel, and with none
-    the weights are equal. A channel whose floor is below the median but whose SNR (speech level over
+    reverberant tail are not a floor); a channel without one counts as the median channel. With none, it
+    returns False and leaves ``weights`` alone (the caller gives equal ones). A channel whose floor is below the median but whose SNR (speech level over
     floor) is more than ``fstate[_LEVEL_SNR_MARGIN]`` below the median SNR is not raised above the median:
     its floor is low because its own electronics are quiet, not because its gain is (``async_8dev``'s device
     5: 15 dB of gain down, a floor 15 dB down, 8 dB less SNR)."""
@@ -224,24 +224,22 @@ def _level_weights(work: np.ndarray, fstate: np.ndarray, n_ok: int, weights: np.
     ok = work[_VALID]
     floor = work[_LOG_FLOOR]
     mass = work[_FLOOR_MASS]
-    floors = np.empty(n_ok)
+    min_mass = fstate[_LEVEL_MIN_MASS]
+    floors = np.empty(n_ok)   # the valid channels' floors, then their SNRs
     k = 0
     for i in range(m):
-        if ok[i] and mass[i] >= fstate[_LEVEL_MIN_MASS]:
+        if ok[i] and mass[i] >= min_mass:
             floors[k] = floor[i]
             k += 1
     if k == 0:
-        w = np.float32(1.0) / np.float32(n_ok)
-        for i in range(m):
-            weights[i] = w if ok[i] else np.float32(0.0)
-        return
+        return False
     middle = np.median(floors[:k])
     # each channel's SNR (log speech-frame power over its floor) against the median channel's
     speech = work[_LOG_SPEECH]
     smass = work[_SPEECH_MASS]
     k2 = 0
     for i in range(m):
-        if ok[i] and mass[i] >= fstate[_LEVEL_MIN_MASS] and smass[i] > 0.0:
+        if ok[i] and mass[i] >= min_mass and smass[i] > 0.0:
             floors[k2] = speech[i] - floor[i]
             k2 += 1
     snr_mid = np.median(floors[:k2]) if k2 > 0 else 0.0
@@ -251,7 +249,7 @@ def _level_weights(work: np.ndarray, fstate: np.ndarray, n_ok: int, weights: np.
     total = 0.0
     for i in range(m):
         if ok[i]:
-            e = -0.5 * (floor[i] - middle) if mass[i] >= fstate[_LEVEL_MIN_MASS] else 0.0
+            e = -0.5 * (floor[i] - middle) if mass[i] >= min_mass else 0.0
             e = min(max(e, -limit), limit)
             if e > 0.0 and k2 > 0 and smass[i] > 0.0 and speech[i] - floor[i] < snr_mid - snr_margin:
                 e = 0.0   # a low floor but a low SNR too: its own quiet electronics, not a low gain
@@ -259,6 +257,7 @@ def _level_weights(work: np.ndarray, fstate: np.ndarray, n_ok: int, weights: np.
             total += w64[i]
     for i in range(m):
         weights[i] = np.float32(w64[i] / total) if ok[i] else np.float32(0.0)
+    return True
 
 
 @numba.njit(cache=True, nogil=True)
@@ -396,20 +395,15 @@ def _beamform(X: np.ndarray, toa: np.ndarray, valid: np.ndarray, f64: np.ndarray
             fine[i, 1, k] = fi[i]
             fr[i], fi[i] = fr[i] * er[i] - fi[i] * ei[i], fr[i] * ei[i] + fi[i] * er[i]
     mode = istate[_ADAPTIVE]
-    if mode == _LEVEL:
-        _level_weights(f64[m + 1 :], fstate, n_ok, weights)
+    if mode != _MRC:   # equal weights, or "level" ones (equal until a channel has a noise floor)
+        if mode == _EQUAL or not _level_weights(f64[m + 1 :], fstate, n_ok, weights):
+            w = np.float32(1.0) / np.float32(n_ok)
+            for i in range(m):
+                weights[i] = w if ok[i] else np.float32(0.0)
         y[:] = 0.0
         for i in range(m):
             if ok[i]:
                 _steer(xf[i], fr[i], fi[i], fine[i], row, np.float64(weights[i]), y, True)
-        return
-    if mode == _EQUAL:
-        w = np.float32(1.0) / np.float32(n_ok)
-        y[:] = 0.0
-        for i in range(m):
-            weights[i] = w if ok[i] else np.float32(0.0)
-            if ok[i]:
-                _steer(xf[i], fr[i], fi[i], fine[i], row, np.float64(w), y, True)
         return
     for i in range(m):
         if ok[i]:

@@ -360,16 +360,16 @@ def summary(report: dict[str, Any], out: Path) -> str:
             v = enh.get(key)
             if v:
                 ssara = _fmt(v.get("ssara_db"), "6.2f")
-                lines.append(f"  {name:<34} SI-SDR {_fmt(v['si_sdr_db'], '6.2f')} dB  STOI {_fmt(v['stoi'], '.3f')}"
+                lines.append(f"  {name:<36} SI-SDR {_fmt(v['si_sdr_db'], '6.2f')} dB  STOI {_fmt(v['stoi'], '.3f')}"
                              + (f"  SSARA {ssara} dB" if ssara != "n/a" else ""))
-        row(f"enhanced ({report['settings']['weighting']} weights)", "engine")
-        other = "adaptive" if report["settings"]["weighting"] == "equal" else "equal"
+        weighting = report["settings"]["weighting"]
+        row(f"enhanced ({weighting} weights)", "engine")
+        other = "adaptive" if weighting == "equal" else "equal"
         row(f"estimated TOA, {other} weights", f"estimated_toa_{other}_weights")
-        own = report["settings"]["weighting"] if report["settings"]["weighting"] != "level" else "equal"
-        row(f"true TOA, async input{', equal' if own != report['settings']['weighting'] else ''}",
-            f"true_toa_async_{own}")
-        row(f"true TOA, synchronous{', equal' if own != report['settings']['weighting'] else ''}",
-            f"true_toa_sync_{own}")
+        # the true-TOA baselines are scored with equal and adaptive weights ("level" learns from a detector's pauses)
+        scored, note = (weighting, "") if weighting != "level" else ("equal", ", equal")
+        row(f"true TOA, async input{note}", f"true_toa_async_{scored}")
+        row(f"true TOA, synchronous signals{note}", f"true_toa_sync_{scored}")
         b = enh.get("best_single_device")
         if b:
             row(f"best single device ({b['device']})", "best_single_device")

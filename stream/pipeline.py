@@ -606,7 +606,7 @@ class Pipeline:
                gated: bool, track_id: int, p_speech: float) -> None:
         """Delay-and-sum of one frame's spectra steered by ``fine``; record it and queue its hop."""
         r = self.aligner.time_reference
-        if self._level and p_speech == p_speech:
+        if self._level and not np.isnan(p_speech):   # NaN: no speech detector, no pauses to learn from
             # "level" weighting: every device's noise floor from the pauses, its speech level from the rest
             self.das.note_frame(spectra, block.valid, pause=p_speech < self._speech_threshold)
         enhanced = self.das.process_spectra(spectra, fine - fine[r] if r else fine, valid=valid)
