@@ -57,6 +57,14 @@ floor, and a device next to a noise source counts less. Unlike ``"adaptive"`` no
 talker, so a wrong steering cannot move the weights. Measured on the generated scenes and the measured
 office (README, "Channel weights").
 
+With ``level_snr_exponent`` ``p > 0`` each "level" weight is also multiplied by ``(SNR_i / SNR_med)^(p / 2)``
+(then held within ``level_max_ratio`` again), ``SNR_i = exp(S_i - L_i) - 1`` from channel ``i``'s average log
+power over the speech frames ``S_i`` and over the pauses ``L_i`` (at least -20 dB): ``p = 1`` is maximal-ratio
+combining on the channels brought to one floor (output SNR = sum of the channels' SNRs when their noises are
+independent), so a device next to the talker counts more. Unlike ``"adaptive"`` it still fits nothing to the
+talker: two averages of frame power per device, split by the speech detector. The engine uses ``p = 1``
+(``EngineConfig.level_snr_exponent``); this class's default is 0.
+
 Invalid channels (``valid[i] == False``, a non-finite ``toa_s[i]`` or any non-finite value in the
 channel's spectrum) get weight 0 and are left out of the statistics for that frame; the others are
 renormalised. NaN never reaches the output. With no valid channel the output frame is silent.
@@ -108,6 +116,7 @@ _LEVEL_FORGET = 6  # "level": forgetting factor per frame of the noise-floor and
 _LEVEL_MAX = 7    # largest weight ratio of a channel to the median channel's ("level")
 _LEVEL_SNR_MARGIN = 8  # "level": a channel more than this (log power) below the median SNR is not boosted
 _LEVEL_MIN_MASS = 9   # "level": a floor counts once its bias-correction mass (frames, forgetting) reaches this
+_LEVEL_SNR_EXPONENT = 10  # "level": a channel's weight also scales as (its SNR over the median SNR)^(this / 2)
 # istate, int64:
 _N_UPDATES = 0    # frames that updated the rank-one fit (state)
 _ADAPTIVE = 1     # the weighting: _EQUAL, _MRC or _LEVEL
@@ -210,6 +219,12 @@ def _learn_floors(X: np.ndarray, valid: np.ndarray, work: np.ndarray, fstate: np
 
 
 @numba.njit(cache=True, nogil=True)
+def _log_snr(log_ratio: float) -> float:
+    """``log SNR`` from ``log((S + N) / N)``, a speech level over a floor; the SNR at least -20 dB."""
+    return math.log(max(math.exp(min(log_ratio, 700.0)) - 1.0, 0.01))
+
+
+@numba.njit(cache=True, nogil=True)
 def _level_weights(work: np.ndarray, fstate: np.ndarray, n_ok: int, weights: np.ndarray) -> bool:
     """``"level"``: equal weights on the channels brought to one noise floor (:func:`_learn_floors`),
     ``w_i = exp(-L_i / 2)``, held within ``[1 / r, r]`` times the median valid channel's
@@ -243,7 +258,9 @@ def _level_weights(work: np.ndarray, fstate: np.ndarray, n_ok: int, weights: np.
             floors[k2] = speech[i] - floor[i]
             k2 += 1
     snr_mid = np.median(floors[:k2]) if k2 > 0 else 0.0
+    snr_mid_log = _log_snr(snr_mid)
     snr_margin = fstate[_LEVEL_SNR_MARGIN]
+    snr_exp = fstate[_LEVEL_SNR_EXPONENT]
     limit = math.log(fstate[_LEVEL_MAX])
     w64 = work[_W]
     total = 0.0
@@ -253,6 +270,9 @@ def _level_weights(work: np.ndarray, fstate: np.ndarray, n_ok: int, weights: np.
             e = min(max(e, -limit), limit)
             if e > 0.0 and k2 > 0 and smass[i] > 0.0 and speech[i] - floor[i] < snr_mid - snr_margin:
                 e = 0.0   # a low floor but a low SNR too: its own quiet electronics, not a low gain
+            if snr_exp > 0.0 and k2 > 0 and mass[i] >= min_mass and smass[i] > 0.0:
+                # maximal-ratio combining on the channels brought to one floor: amplitude SNR ^ exponent
+                e = min(max(e + 0.5 * snr_exp * (_log_snr(speech[i] - floor[i]) - snr_mid_log), -limit), limit)
             w64[i] = math.exp(e)
             total += w64[i]
     for i in range(m):
@@ -540,6 +560,9 @@ class DelayAndSum:
         the median's weight, however low its floor. Default 3 dB.
     level_min_pause_s : float, optional
         ``"level"``: a channel's floor counts after this much of pauses. Default 0.5 s.
+    level_snr_exponent : float, optional
+        ``"level"``: each weight also times ``(SNR_i / SNR_med)^(p / 2)``, ``p`` in [0, 2] (module docstring):
+        1 is maximal-ratio combining, 0 (default) the floors alone.
 
     Attributes
     ----------
@@ -572,6 +595,7 @@ class DelayAndSum:
         level_max_ratio: float = 4.0,
         level_snr_margin_db: float = 3.0,
         level_min_pause_s: float = 0.5,
+        level_snr_exponent: float = 0.0,
     ) -> None:
         if int(n_channels) != n_channels or n_channels < 1:
             raise ValueError(f"{n_channels=} must be an integer >= 1")
@@ -588,6 +612,8 @@ class DelayAndSum:
         if not (np.isfinite(level_min_pause_s) and 0 <= level_min_pause_s < level_time_constant_s):
             raise ValueError(f"{level_min_pause_s=} must be a number of seconds >= 0 and below "
                              f"{level_time_constant_s=} (the averages' mass never reaches more)")
+        if not (np.isfinite(level_snr_exponent) and 0 <= level_snr_exponent <= 2):
+            raise ValueError(f"{level_snr_exponent=} must be in [0, 2] (0: every channel to one floor, 1: MRC)")
         if not (np.isfinite(weight_time_constant_s) and weight_time_constant_s > 0):
             raise ValueError(f"{weight_time_constant_s=} must be a positive number of seconds")
         low_hz, high_hz = (float(f) for f in weight_band_hz)
@@ -635,7 +661,8 @@ class DelayAndSum:
                                  float(np.exp(-self.hop_samples / (self.sample_rate_hz * level_time_constant_s))),
                                  float(level_max_ratio),
                                  float(level_snr_margin_db) * math.log(10.0) / 10.0,
-                                 float(level_min_pause_s) * self.sample_rate_hz / self.hop_samples])
+                                 float(level_min_pause_s) * self.sample_rate_hz / self.hop_samples,
+                                 float(level_snr_exponent)])
         # Steering blocks: K fine phasors per channel, K a power of two >= sqrt(n_bins) so that
         # the K-long product rows and the n_bins / K coarse steps balance.
         n_fine = max(2, 1 << int(np.ceil(np.log2(np.sqrt(self.n_bins)))))

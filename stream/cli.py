@@ -59,6 +59,9 @@ def _add_engine_options(p: argparse.ArgumentParser) -> None:
     g.add_argument("--weighting", choices=["equal", "adaptive", "level"],
                    help="delay-and-sum channel weights (default level: equal weights on the devices brought to "
                         "one noise floor, learnt in the speech detector's pauses; equal without a detector)")
+    g.add_argument("--level-snr-exponent", type=float,
+                   help="--weighting level: each weight also times (the device's SNR over the median's)^(this / 2), "
+                        "in [0, 2] (default 1: maximal-ratio combining; 0: the noise floors alone)")
     g.add_argument("--accel-std-s-per-s2", type=float, help="Kalman process noise: TOA acceleration std")
     g.add_argument("--tdoa-std-s", type=float, help="Kalman measurement noise: TDOA std in seconds")
     g.add_argument("--gate-probability", type=float, help="Kalman clutter gate (chi-square probability)")

@@ -53,6 +53,7 @@ class EngineConfig:
     max_tdoa_s: float = 0.012
     weighting: Weighting = "level"   # beamform.DelayAndSum; "level" learns from the tracker's speech detector
     # (the other estimators have none: for them it is "equal")
+    level_snr_exponent: float = 1.0  # "level": weights also ~ (device SNR / median SNR)^(this / 2); 1 is MRC
     # Kalman TOA (eqs. 13-17)
     accel_std_s_per_s2: float = 1e-3
     tdoa_std_s: float = 5e-4
@@ -175,6 +176,9 @@ class EngineConfig:
             raise ConfigError(f"switch_ratio={self.switch_ratio} must be >= 1")
         if self.weighting not in ("equal", "adaptive", "level"):
             raise ConfigError(f"weighting={self.weighting!r} must be 'equal', 'adaptive' or 'level'")
+        if not (math.isfinite(self.level_snr_exponent) and 0 <= self.level_snr_exponent <= 2):
+            raise ConfigError(f"level_snr_exponent={self.level_snr_exponent} must be in 0..2 (1: maximal-ratio "
+                              "combining, 0: the noise floors alone)")
         if self.working_rate_hz is not None and not 1000 <= self.working_rate_hz <= 384000:
             raise ConfigError(f"working_rate_hz={self.working_rate_hz} must be in 1000..384000 Hz")
         if self.frame_samples is not None and not 32 <= self.frame_samples <= 65536:

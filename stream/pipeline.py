@@ -336,7 +336,8 @@ class Pipeline:
         self._level = config.weighting == "level"
         self.das = beamform.DelayAndSum(self.n_devices, frame_samples=config.frame_samples,
                                         hop_samples=config.hop_samples, sample_rate_hz=fs,
-                                        weighting=config.weighting)
+                                        weighting=config.weighting,
+                                        level_snr_exponent=config.level_snr_exponent)
         self.keep_input = keep_input
         self._results: list[HopResult] = []
         self.counters = StreamCounters()

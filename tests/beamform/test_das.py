@@ -615,3 +615,35 @@ def test_a_floor_counts_after_half_a_second_of_pauses_and_quiet_electronics_are_
     assert w[1] / w[0] == pytest.approx(1.0, rel=0.05)
     # a floor 30 dB low, but 10 dB less SNR: held at the median floor's weight (halfway between devices 1 and 2)
     assert w[3] == pytest.approx(np.sqrt(w[1] * w[2]), rel=1e-4)
+
+
+def test_level_snr_exponent_gives_maximal_ratio_weights_on_the_floors():
+    # three devices with one noise floor; the talker 6 dB louder at device 0 and 6 dB quieter at device 2 than at
+    # device 1 (device 0 sits next to the talker). Exponent 1: weights ~ amplitude SNR (maximal-ratio combining on
+    # devices of one floor), and the output beats "level" alone; exponent 0 is "level" exactly
+    rng = np.random.default_rng(14)
+    frame, hop = 512, 128
+    n = int(6 * FS_HZ)
+    talk = rng.standard_normal(n) * 0.1                  # stationary, so a frame's power is the talker's power
+    talk[: n // 3] = 0.0
+    amp = np.array([2.0, 1.0, 0.5])
+    noise = 0.05 * rng.standard_normal((n, 3))
+    x = (talk[:, None] * amp + noise).astype(np.float32)
+    quiet = np.arange(n // hop) * hop < n // 3
+    lat = frame - hop
+    s0 = n // 3 + frame
+    out, w = {}, {}
+    for exponent in (0.0, 1.0):
+        das = DelayAndSum(3, frame_samples=frame, hop_samples=hop, sample_rate_hz=FS_HZ, weighting="level",
+                          level_snr_exponent=exponent)
+        y = _stream_quiet(das, x, quiet)
+        out[exponent] = _si_sdr_db(y[s0 + lat :], talk[s0 : len(y) - lat])
+        w[exponent] = das.channel_weights
+    np.testing.assert_allclose(w[0.0], 1 / 3, rtol=0.02)        # one floor: "level" is equal weighting
+    snr = amp ** 2 * 0.1 ** 2 / 0.05 ** 2                       # 16, 4, 1
+    np.testing.assert_allclose(w[1.0] / w[1.0][1], np.sqrt(snr / snr[1]), rtol=0.05)
+    bound = 10 * np.log10(np.sum(snr))                          # MRC: the output SNR is the sum of the channels'
+    assert out[1.0] == pytest.approx(bound, abs=0.3)
+    assert out[1.0] > out[0.0] + 1.0
+    with pytest.raises(ValueError, match="level_snr_exponent"):
+        DelayAndSum(2, frame_samples=frame, hop_samples=hop, sample_rate_hz=FS_HZ, level_snr_exponent=-1)

@@ -207,6 +207,8 @@ def test_bad_options_are_one_sentence(make_devices, tmp_path, capsys):
     paths, _, _ = make_devices([0.0, 0.001], duration_s=2.0)
     with pytest.raises(ConfigError, match="hop_samples=300 must divide frame_samples=1024"):
         run_replay(paths, tmp_path / "o", config=_cfg(frame_samples=1024, hop_samples=300))
+    assert main(["replay", *map(str, paths), "--out", str(tmp_path / "o"), "--level-snr-exponent", "3"]) == 2
+    assert "level_snr_exponent=3.0 must be in 0..2" in capsys.readouterr().err
     cfg = tmp_path / "c.toml"
     cfg.write_text("estimatr = 'kalman'\n")
     assert main(["replay", *map(str, paths), "--out", str(tmp_path / "o"), "--config", str(cfg)]) == 2
