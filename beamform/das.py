@@ -231,12 +231,14 @@ def _level_weights(work: np.ndarray, fstate: np.ndarray, n_ok: int, weights: np.
     (``r = fstate[_LEVEL_MAX]``), normalised to sum to 1 over the valid channels. A floor counts once
     ``fstate[_LEVEL_MIN_MASS]`` frames of pauses made it (a few frames at a talker's onset or in a
     reverberant tail are not a floor); a channel without one counts as the median channel. With none, it
-    returns False and leaves ``weights`` alone (the caller gives equal ones). A channel whose floor is below the median but whose SNR (speech level over
-    floor) is more than ``fstate[_LEVEL_SNR_MARGIN]`` below the median SNR is not raised above the median:
-    its floor is low because its own electronics are quiet, not because its gain is (``async_8dev``'s device
-    5: 15 dB of gain down, a floor 15 dB down, 8 dB less SNR). With ``fstate[_LEVEL_SNR_EXPONENT]`` ``p > 0``, a
-    channel with a floor and a speech level is then also weighted by ``(SNR_i / SNR_med)^(p / 2)``
-    (:func:`_log_snr`) and held within ``[1 / r, r]`` again."""
+    returns False and leaves ``weights`` alone (the caller gives equal ones).
+
+    A channel whose floor is below the median but whose SNR (speech level over floor) is more than
+    ``fstate[_LEVEL_SNR_MARGIN]`` below the median SNR is not raised above the median: its floor is low
+    because its own electronics are quiet, not because its gain is (``async_8dev``'s device 5: 15 dB of gain
+    down, a floor 15 dB down, 8 dB less SNR). With ``fstate[_LEVEL_SNR_EXPONENT]`` ``p > 0``, a channel with a
+    floor and a speech level is then also weighted by ``(SNR_i / SNR_med)^(p / 2)`` (:func:`_log_snr`) and
+    held within ``[1 / r, r]`` again."""
     m = work.shape[1]
     ok = work[_VALID]
     floor = work[_LOG_FLOOR]
