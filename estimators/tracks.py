@@ -262,6 +262,54 @@ def _pick_peaks(peak_tdoa, peak_value, pred, gate, used, pair_ok, min_peak, k_ou
     return n_took
 
 
+@numba.njit(cache=True, nogil=True)
+def _birth_support(peak_tdoa, free_ok, has, best_tdoa, usable, star_idx, star_sign, star_other, pair_i, pair_j,
+                   tol, support, near):
+    """The birth's hypotheses (:meth:`SourceTracker._birth`), one per usable device ``r`` with enough pairs: the
+    TOA vector its pairs' best free peaks give (``toa_j - toa_r``, then relative to device 0), and the free
+    peaks within ``tol`` of it. Writes the most supported one's pairs (``support``, (P,)) and peaks (``near``,
+    (P, K)); returns its number of pairs, or -1 when no device has enough."""
+    m = usable.shape[0]
+    n_pairs, n_peaks = peak_tdoa.shape
+    n_usable = 0
+    for r in range(m):
+        n_usable += usable[r]
+    toa = np.empty(m)
+    best_n = -1
+    for r in range(m):
+        if not usable[r]:
+            continue
+        n_ok = 0
+        for q in range(m - 1):
+            n_ok += has[star_idx[r, q]] and usable[star_other[r, q]]
+        if n_ok < max(2, n_usable - 2):
+            continue
+        toa[:] = 0.0
+        for q in range(m - 1):
+            if has[star_idx[r, q]] and usable[star_other[r, q]]:
+                toa[star_other[r, q]] = star_sign[r, q] * best_tdoa[star_idx[r, q]]   # toa_j - toa_r
+        t0 = toa[0]
+        for j in range(m):
+            toa[j] -= t0
+        n = 0
+        for p in range(n_pairs):
+            pred = toa[pair_i[p]] - toa[pair_j[p]]
+            for k in range(n_peaks):
+                if free_ok[p, k] and abs(peak_tdoa[p, k] - pred) <= tol:
+                    n += 1
+                    break
+        if n > best_n:
+            best_n = n
+            for p in range(n_pairs):
+                pred = toa[pair_i[p]] - toa[pair_j[p]]
+                any_near = False
+                for k in range(n_peaks):
+                    near[p, k] = free_ok[p, k] and abs(peak_tdoa[p, k] - pred) <= tol
+                    any_near = any_near or near[p, k]
+                support[p] = any_near
+    return best_n
+
+
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _solve_pairs(H0, tdoa, keep, out):
     """Least squares ``H0[keep] toa = tdoa[keep]`` through the normal equations (Cholesky of the
@@ -538,6 +586,14 @@ class SourceTracker:
             sign = np.where(self._pairs[idx, 0] == r, -1.0, 1.0)
             self._star.append((idx, sign))
             self._star_other.append(other)
+        # the same as (M, M-1) arrays for the compiled birth (:func:`_birth_support`)
+        self._star_idx = np.array([idx for idx, _ in self._star], np.int64).reshape(self.n_devices, -1)
+        self._star_sign = np.array([sign for _, sign in self._star], np.float64).reshape(self.n_devices, -1)
+        self._star_oth = np.array(self._star_other, np.int64).reshape(self.n_devices, -1)
+        self._pair_i = np.ascontiguousarray(self._pairs[:, 0], np.int64)
+        self._pair_j = np.ascontiguousarray(self._pairs[:, 1], np.int64)
+        self._birth_near = np.zeros((self.n_pairs, 1), bool)   # resized to the peaks per pair at the first birth
+        self._birth_pairs = np.zeros(self.n_pairs, bool)
         self.reset()
 
     @classmethod
@@ -1111,24 +1167,13 @@ class SourceTracker:
         if has.sum() < self.n_devices - 1:
             return
         best_tdoa = peak_tdoa[self._rows, k_best]
-        tol = self.birth_max_residual_s
-        best = None
-        for r in np.flatnonzero(usable):
-            idx, sign = self._star[r]
-            ok = has[idx] & usable[self._star_other[r]]
-            if ok.sum() < max(2, usable.sum() - 2):
-                continue
-            toa = np.zeros(self.n_devices)
-            toa[self._star_other[r][ok]] = sign[ok] * best_tdoa[idx[ok]]   # toa_j - toa_r
-            toa -= toa[0]
-            near = np.abs(peak_tdoa - (self._H @ toa)[:, None]) <= tol
-            support = (near & free_ok).any(axis=1)
-            n = int(support.sum())
-            if best is None or n > best[0]:
-                best = (n, support, near & free_ok)
-        if best is None:
+        if self._birth_near.shape != peak_tdoa.shape:
+            self._birth_near = np.zeros(peak_tdoa.shape, bool)
+        support, near = self._birth_pairs, self._birth_near
+        if _birth_support(np.ascontiguousarray(peak_tdoa, np.float64), free_ok, has, best_tdoa,
+                          np.ascontiguousarray(usable, np.bool_), self._star_idx, self._star_sign, self._star_oth,
+                          self._pair_i, self._pair_j, float(self.birth_max_residual_s), support, near) < 0:
             return
-        n, support, near = best
         k = np.argmax(np.where(near, peak_value, -np.inf), axis=1)
         tdoa = peak_tdoa[self._rows, k]
         fit = self._fit(tdoa, support, usable)

@@ -208,6 +208,8 @@ class Aligner:
         self._received = [0] * n_devices
         self._ended = [False] * n_devices
         self.offsets_samples = np.zeros(n_devices, dtype=np.int64)
+        self._block_offsets: np.ndarray | None = None   # the last blocks' offsets (shared while equal)
+        self._block_offsets_list: list[int] = []
         self.quality = np.ones(n_devices)
         self.aligned = np.ones(n_devices, dtype=bool)
         self._is_reference = np.arange(n_devices) == 0
@@ -483,6 +485,15 @@ class Aligner:
         reference device's recording."""
         return int(np.ceil(self._received[0] / self.hop_samples))
 
+    def _offsets_now(self) -> tuple[np.ndarray, list[int]]:
+        """The next block's offsets: a copy of ``offsets_samples`` (a shift moves them later), the same array
+        as the last block's while they have not changed (so the pipeline can tell at once), and as a list."""
+        offsets = self.offsets_samples.tolist()
+        if self._block_offsets is None or offsets != self._block_offsets_list:
+            self._block_offsets = self.offsets_samples.copy()   # not to be written to: blocks share it
+            self._block_offsets_list = offsets
+        return self._block_offsets, offsets
+
     def _emit(self) -> Iterator[Block]:
         if not self.ready:
             if self._ref_start is None and not self._ended[0]:
@@ -501,8 +512,7 @@ class Aligner:
             k = self.next_block
             if self._ended[0] and k >= self._end_block():
                 break
-            offsets_now = self.offsets_samples.copy()   # the block's (shift moves self.offsets_samples later)
-            offsets = offsets_now.tolist()
+            offsets_now, offsets = self._offsets_now()
             if not all_ended:
                 end = (k + 1) * hop
                 received, ended = self._received, self._ended
@@ -521,7 +531,7 @@ class Aligner:
             self._waiting_for = None
             if self._pending is not None and k >= self._pending[0]:
                 self._apply_recheck()
-                offsets_now = self.offsets_samples.copy()
+                offsets_now, offsets = self._offsets_now()
             if self.recheck_blocks and k > 0 and k % self.recheck_blocks == 0 and self._pending is None:
                 self._submit_recheck()
             samples = np.empty((hop, n_dev), np.float32)

@@ -17,6 +17,7 @@ from __future__ import annotations
 import collections
 import dataclasses
 import logging
+import math
 import time
 from dataclasses import dataclass
 from typing import Iterable, Sequence
@@ -302,6 +303,8 @@ class Pipeline:
         self._drift_phase = 0
         self._drift_moved_s: np.ndarray | None = None   # drift not yet turned into the noise spectra
         self._drift_rate_used: np.ndarray | None = None   # the meter's rate they were last turned at
+        self._drift_rate_step_s = 0.0      # its largest move per hop
+        self._drift_moved_bound_s = 0.0    # at least the largest of `_drift_moved_s`
         self.tracker: estimators.SourceTracker | None = None
         self.speech = None
         self._steering = steering
@@ -345,6 +348,8 @@ class Pipeline:
         self.hop_times = HopTimes()
         self._fine_toa_s = np.zeros(self.n_devices)
         self._last_offsets = np.zeros(self.n_devices, dtype=np.int64)
+        self._coarse_of: np.ndarray | None = None   # the offsets array `_coarse_s` was computed from
+        self._coarse_s_cached = np.zeros(self.n_devices)
         self._recent: collections.deque = collections.deque(maxlen=RECENTRE_FRAMES)
         # frames wait in `_delayed` for `_lag` frames: a lagging estimator's TOA of them (the smoother), or the
         # tracker's decision `lookahead_frames` later (the tracker itself is causal: latency_frames 0)
@@ -488,7 +493,7 @@ class Pipeline:
         spectra = self.stft.process(block.samples)
         valid, track_id, p_speech, measure = block.valid, -1, float("nan"), True
         if self.tracker is not None:
-            p_speech = self.speech.process(block.samples, block.valid).probability
+            p_speech = self.speech.process(block.samples, block.valid, finite=True).probability
             measure = self._track_phase == 0
             self._track_phase = (self._track_phase + 1) % self.track_stride
             # every hop moves the GCC's averages; its peaks are searched on the tracker's measurements only
@@ -509,7 +514,7 @@ class Pipeline:
                 self._fine_toa_s = fine
                 if measure:
                     rate = self.tracker.steered.toa_rate_s_per_s if track_id >= 0 else self._zeros
-                    self._decision = (track_id, fallback, block.offsets_samples / fs + fine, rate, time_s)
+                    self._decision = (track_id, fallback, self._coarse_s(block) + fine, rate, time_s)
                 self._look_ahead(t0, spectra, block, time_s, tdoa, gated, p_speech, measure)
                 return
             if fallback:
@@ -525,7 +530,7 @@ class Pipeline:
             gated = False
         self._fine_toa_s = fine
         if self._lag:   # the estimate is `lag` frames old: steer the spectra of that frame with it
-            if not self._held(t0, (spectra.copy(), block, time_s, tdoa, valid.copy())):
+            if not self._held(t0, (spectra.copy(order="K"), block, time_s, tdoa, valid.copy())):
                 return
             spectra, block, time_s, tdoa, valid = self._delayed.popleft()
         self._steer(spectra, block, time_s, tdoa, valid, fine, gated, track_id, p_speech)
@@ -543,7 +548,7 @@ class Pipeline:
                                    noise_peaks=self.gcc.noise_peaks if self.gcc.noise_mature else None)
         gated = self.tracker.gated
         track_id = self.tracker.steered_id
-        coarse = block.offsets_samples / self.config.working_rate_hz
+        coarse = self._coarse_s(block)
         for t in self.tracker.tracks:
             if t.kind != "tentative":
                 h = self.state.source_tracks.get(t.track_id)
@@ -579,7 +584,9 @@ class Pipeline:
         source."""
         if measured:
             self._recentre(self._fine_toa_s, block)
-        if self._held(t0, (spectra.copy(), block, time_s, tdoa, block.valid.copy(), gated, p_speech)):
+        # order "K" keeps the STFT's column-major layout, which the beamformer's kernels take as it is (a plain
+        # copy is row-major: the beamformer copied it once more, in every hop)
+        if self._held(t0, (spectra.copy(order="K"), block, time_s, tdoa, block.valid.copy(), gated, p_speech)):
             self._steer_ahead()
             self.hop_times.add(1e3 * (time.perf_counter() - t0))
 
@@ -597,8 +604,7 @@ class Pipeline:
         if track_id < 0:   # nothing steered: the devices' average at the coarse alignment
             fine = self._zeros
         else:
-            fine = (total_toa_s - rate * (decided_s - time_s)
-                    - block.offsets_samples / self.config.working_rate_hz)
+            fine = total_toa_s - rate * (decided_s - time_s) - self._coarse_s(block)
         if fallback:
             valid = self._reference_only_of(valid)
         self._steer(spectra, block, time_s, tdoa, valid, fine, gated, track_id, p_speech)
@@ -607,12 +613,11 @@ class Pipeline:
                gated: bool, track_id: int, p_speech: float) -> None:
         """Delay-and-sum of one frame's spectra steered by ``fine``; record it and queue its hop."""
         r = self.aligner.time_reference
-        if self._level and not np.isnan(p_speech):   # NaN: no speech detector, no pauses to learn from
+        if self._level and not math.isnan(p_speech):   # NaN: no speech detector, no pauses to learn from
             # "level" weighting: every device's noise floor from the pauses, its speech level from the rest
             self.das.note_frame(spectra, block.valid, pause=p_speech < self._speech_threshold)
         enhanced = self.das.process_spectra(spectra, fine - fine[r] if r else fine, valid=valid)
-        toa = ToaEstimate(block.seq, time_s, block.offsets_samples / self.config.working_rate_hz + fine, gated,
-                          track_id, p_speech)
+        toa = ToaEstimate(block.seq, time_s, self._coarse_s(block) + fine, gated, track_id, p_speech)
         self._record(block, tdoa, toa, enhanced)
         self._results.append(HopResult(enhanced, toa))
 
@@ -726,7 +731,7 @@ class Pipeline:
         s.offsets.append(block.offsets_samples)
         s.track_id.append(toa.track_id)
         s.speech_probability.append(toa.speech_probability)
-        s.weights.append(np.asarray(self.das.channel_weights, dtype=np.float32).copy())
+        s.weights.append(self.das.channel_weights)   # float32, a copy
         s.enhanced.append(enhanced)
         if self.keep_input:
             s.aligned_input.append(block.samples)
@@ -777,15 +782,31 @@ class Pipeline:
             # a new measurement: the average's frames were turned at the old rate since they were taken
             self._drift_moved_s += (rate - self._drift_rate_used) * self.gcc.noise_age_s
             self._drift_rate_used = rate
+            self._drift_rate_step_s = float(np.abs(rate).max()) * hop_s
+            self._drift_moved_bound_s = float(np.abs(self._drift_moved_s).max())
         self._drift_moved_s += rate * hop_s
-        if np.abs(self._drift_moved_s).max() >= DRIFT_STEP_S:
+        # the exact test only once a bound on it (the largest move plus the largest rate per hop) could pass
+        self._drift_moved_bound_s += self._drift_rate_step_s
+        if (self._drift_moved_bound_s >= DRIFT_STEP_S * (1.0 - 1e-9)
+                and np.abs(self._drift_moved_s).max() >= DRIFT_STEP_S):
             self.gcc.shift_noise(self._drift_moved_s, short_time=False)   # the meter measures the short-time one
             self._drift_moved_s[:] = 0.0
+            self._drift_moved_bound_s = 0.0
+
+    def _coarse_s(self, block: Block) -> np.ndarray:
+        """The block's coarse offsets in seconds (the aligner hands out the same array while they do not change,
+        and no stage writes to a block's arrays: computed once per change)."""
+        if block.offsets_samples is not self._coarse_of:
+            self._coarse_of = block.offsets_samples
+            self._coarse_s_cached = block.offsets_samples / self.config.working_rate_hz
+        return self._coarse_s_cached
 
     def _follow_offsets(self, block: Block) -> None:
         """When the aligner moved a device, move the estimator's state with it."""
+        if block.offsets_samples is self._last_offsets:   # the aligner's array of the blocks before: no move
+            return
         delta = block.offsets_samples - self._last_offsets
-        self._last_offsets = block.offsets_samples.copy()
+        self._last_offsets = block.offsets_samples
         if self.estimator is None or not delta.any() or block.seq == 0:
             return
         delta_s = delta / self.config.working_rate_hz

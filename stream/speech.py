@@ -179,7 +179,7 @@ class SpeechPresence:
         self.n_frames = 0
         self.n_speech_frames = 0
 
-    def process(self, samples: np.ndarray, valid: np.ndarray | None = None) -> SpeechFrame:
+    def process(self, samples: np.ndarray, valid: np.ndarray | None = None, *, finite: bool = False) -> SpeechFrame:
         """Speech presence of one hop.
 
         Parameters
@@ -188,11 +188,14 @@ class SpeechPresence:
             The hop at the working rate, full scale 1.0. Non-finite samples count as 0.
         valid : ndarray, shape (n_devices,), bool, optional
             Devices to use; an invalid device has probability 0.
+        finite : bool
+            The caller knows every sample is finite (the pipeline's blocks: the conditioner replaced the
+            rest), so the check is skipped.
         """
         x = np.asarray(samples, dtype=np.float32)
         if x.ndim != 2 or x.shape[1] != self.n_devices:
             raise ValueError(f"samples.shape={x.shape} must be (n_samples, n_devices={self.n_devices})")
-        if not np.isfinite(x.sum()):   # one sum instead of a mask: a NaN or an infinity makes it non-finite
+        if not finite and not np.isfinite(x.sum()):   # one sum, not a mask: a NaN or an inf makes it non-finite
             x = np.nan_to_num(x, nan=0.0, posinf=0.0, neginf=0.0)
         usable = self._all_usable if valid is None else np.asarray(valid, bool)
         frame = self.vad_frame_samples

@@ -296,6 +296,54 @@ def test_the_compiled_fit_equals_the_pseudo_inverse_for_any_set_of_pairs():
     assert 20 < n_disconnected < 280   # both paths ran
 
 
+def test_the_compiled_birth_hypotheses_equal_the_array_formulation():
+    """A birth's hypotheses (one TOA vector per usable device from its pairs' best free peaks, the one most pairs
+    support) are one compiled call since 2026-12-01: the same count, pairs and peaks to the bit as the array
+    formulation it replaced (``H @ toa`` and ``|peak - prediction| <= tol`` over every free peak)."""
+    from estimators.tracks import _birth_support
+
+    rng = np.random.default_rng(11)
+    n_none = 0
+    for m in (3, 5, 8):
+        tr = SourceTracker(m, frame_period_s=DT, sample_rate_hz=FS)
+        h = pair_matrix(m)
+        n_pairs, n_peaks, rows = m * (m - 1) // 2, 5, np.arange(m * (m - 1) // 2)
+        for _ in range(400):
+            truth = rng.uniform(-5e-3, 5e-3, m)
+            peaks = rng.uniform(-0.012, 0.012, (n_pairs, n_peaks))
+            hit = rng.random((n_pairs, n_peaks)) < 0.3
+            peaks[hit] = ((h @ truth)[:, None] + rng.normal(0, 2e-5, (n_pairs, n_peaks)))[hit]
+            free_ok = rng.random((n_pairs, n_peaks)) < 0.8
+            usable = rng.random(m) < 0.85
+            free = np.where(free_ok, rng.random((n_pairs, n_peaks)), -np.inf)
+            k_best = np.argmax(free, axis=1)
+            has, best_tdoa = np.isfinite(free[rows, k_best]), peaks[rows, k_best]
+            tol = tr.birth_max_residual_s
+            want = None
+            for r in np.flatnonzero(usable):
+                idx, sign = tr._star[r]
+                ok = has[idx] & usable[tr._star_other[r]]
+                if ok.sum() < max(2, usable.sum() - 2):
+                    continue
+                toa = np.zeros(m)
+                toa[tr._star_other[r][ok]] = sign[ok] * best_tdoa[idx[ok]]
+                toa -= toa[0]
+                near = (np.abs(peaks - (h @ toa)[:, None]) <= tol) & free_ok
+                if want is None or near.any(axis=1).sum() > want[0]:
+                    want = (int(near.any(axis=1).sum()), near.any(axis=1), near)
+            support, near = np.zeros(n_pairs, bool), np.zeros((n_pairs, n_peaks), bool)
+            n = _birth_support(peaks, free_ok, has, best_tdoa, usable, tr._star_idx, tr._star_sign, tr._star_oth,
+                               tr._pair_i, tr._pair_j, float(tol), support, near)
+            if want is None:
+                assert n == -1
+                n_none += 1
+            else:
+                assert n == want[0]
+                np.testing.assert_array_equal(support, want[1])
+                np.testing.assert_array_equal(near, want[2])
+    assert 0 < n_none < 1000   # both outcomes ran
+
+
 @pytest.mark.parametrize("quiet_confirm_s", [0.5, None])
 def test_a_noise_heard_alone_before_the_talker_is_never_steered_though_the_detector_then_calls_it_speech(
         quiet_confirm_s):
