@@ -573,27 +573,18 @@ class SourceTracker:
                                    reinit_after_n_gated=None, min_confidence=0.0)
         self._tdoa_std_s = float(tdoa_std_s)
         self._pairs = pairs(self.n_devices)
-        self._H = pair_matrix(self.n_devices)
-        self._H0 = self._H[:, 1:]
+        self._H0 = pair_matrix(self.n_devices)[:, 1:]
         self._rows = np.arange(self.n_pairs)
         self._pinv_cache: dict[bytes, np.ndarray] = {}
-        # per device r: the pairs (r, j) / (j, r) with every other device j, and the sign that turns the
-        # pair's TDOA into toa_j - toa_r
-        self._star, self._star_other = [], []
-        for r in range(self.n_devices):
-            idx = np.flatnonzero((self._pairs == r).any(axis=1))
-            other = np.where(self._pairs[idx, 0] == r, self._pairs[idx, 1], self._pairs[idx, 0])
-            sign = np.where(self._pairs[idx, 0] == r, -1.0, 1.0)
-            self._star.append((idx, sign))
-            self._star_other.append(other)
-        # the same as (M, M-1) arrays for the compiled birth (:func:`_birth_support`)
-        self._star_idx = np.array([idx for idx, _ in self._star], np.int64).reshape(self.n_devices, -1)
-        self._star_sign = np.array([sign for _, sign in self._star], np.float64).reshape(self.n_devices, -1)
-        self._star_oth = np.array(self._star_other, np.int64).reshape(self.n_devices, -1)
+        # per device r, (M, M-1) arrays for the compiled birth (:func:`_birth_support`): the pairs (r, j) / (j, r)
+        # with every other device j, that device j, and the sign that turns the pair's TDOA into toa_j - toa_r
+        self._star_idx = np.array([np.flatnonzero((self._pairs == r).any(axis=1)) for r in range(self.n_devices)],
+                                  np.int64).reshape(self.n_devices, -1)
+        r_first = self._pairs[self._star_idx, 0] == np.arange(self.n_devices)[:, None]
+        self._star_oth = np.where(r_first, self._pairs[self._star_idx, 1], self._pairs[self._star_idx, 0])
+        self._star_sign = np.where(r_first, -1.0, 1.0)
         self._pair_i = np.ascontiguousarray(self._pairs[:, 0], np.int64)
         self._pair_j = np.ascontiguousarray(self._pairs[:, 1], np.int64)
-        self._birth_near = np.zeros((self.n_pairs, 1), bool)   # resized to the peaks per pair at the first birth
-        self._birth_pairs = np.zeros(self.n_pairs, bool)
         self.reset()
 
     @classmethod
@@ -1167,9 +1158,7 @@ class SourceTracker:
         if has.sum() < self.n_devices - 1:
             return
         best_tdoa = peak_tdoa[self._rows, k_best]
-        if self._birth_near.shape != peak_tdoa.shape:
-            self._birth_near = np.zeros(peak_tdoa.shape, bool)
-        support, near = self._birth_pairs, self._birth_near
+        support, near = np.empty(self.n_pairs, bool), np.empty(peak_tdoa.shape, bool)   # filled unless -1
         if _birth_support(np.ascontiguousarray(peak_tdoa, np.float64), free_ok, has, best_tdoa,
                           np.ascontiguousarray(usable, np.bool_), self._star_idx, self._star_sign, self._star_oth,
                           self._pair_i, self._pair_j, float(self.birth_max_residual_s), support, near) < 0:

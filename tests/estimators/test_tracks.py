@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from estimators import SourceTracker, pair_matrix, within_but_one
+from estimators import SourceTracker, pair_matrix, pairs, within_but_one
 
 FS = 16000.0
 DT = 256 / FS
@@ -306,7 +306,7 @@ def test_the_compiled_birth_hypotheses_equal_the_array_formulation():
     n_none = 0
     for m in (3, 5, 8):
         tr = SourceTracker(m, frame_period_s=DT, sample_rate_hz=FS)
-        h = pair_matrix(m)
+        h, pair_list = pair_matrix(m), pairs(m)
         n_pairs, n_peaks, rows = m * (m - 1) // 2, 5, np.arange(m * (m - 1) // 2)
         for _ in range(400):
             truth = rng.uniform(-5e-3, 5e-3, m)
@@ -321,12 +321,14 @@ def test_the_compiled_birth_hypotheses_equal_the_array_formulation():
             tol = tr.birth_max_residual_s
             want = None
             for r in np.flatnonzero(usable):
-                idx, sign = tr._star[r]
-                ok = has[idx] & usable[tr._star_other[r]]
+                idx = np.flatnonzero((pair_list == r).any(axis=1))      # the pairs of device r
+                other = np.where(pair_list[idx, 0] == r, pair_list[idx, 1], pair_list[idx, 0])
+                sign = np.where(pair_list[idx, 0] == r, -1.0, 1.0)      # TDOA -> toa_other - toa_r
+                ok = has[idx] & usable[other]
                 if ok.sum() < max(2, usable.sum() - 2):
                     continue
                 toa = np.zeros(m)
-                toa[tr._star_other[r][ok]] = sign[ok] * best_tdoa[idx[ok]]
+                toa[other[ok]] = sign[ok] * best_tdoa[idx[ok]]
                 toa -= toa[0]
                 near = (np.abs(peaks - (h @ toa)[:, None]) <= tol) & free_ok
                 if want is None or near.any(axis=1).sum() > want[0]:
