@@ -323,7 +323,11 @@ def test_a_slow_engine_keeps_a_bounded_backlog():
             "adhoc/t5/dev/d/info", json.dumps({"name": "d", "sample_rate_hz": RATE, "n_channels": 1})))
         with source:
             assert [d.name for d in source.active] == ["d"] and source.active[0].sample_rate_hz == RATE
-            pub = sender.declare_publisher("adhoc/t5/dev/d/audio")
+            import zenoh
+            # as a device publishes (stream.net): reliable and blocking, so that all 200 frames reach the source
+            # (the default drops frames when the sender's queue is full, as it did in one fresh-clone run: 77)
+            pub = sender.declare_publisher("adhoc/t5/dev/d/audio", reliability=zenoh.Reliability.RELIABLE,
+                                           congestion_control=zenoh.CongestionControl.BLOCK)
             for seq in range(200):                              # 12.8 s of audio at once
                 pub.put(wire.encode(np.full(1024, seq / 1000, np.float32), seq=seq, first_sample=seq * 1024,
                                     sample_rate_hz=RATE, instance=5))
