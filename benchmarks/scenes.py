@@ -45,6 +45,9 @@ Figures per scene and estimator:
 - ``speech_false_alarm``: fraction of the frames where nobody talks (the ``SPEECH_TAIL_S`` = 0.3 s after any talker's
   speech left out) that the speech detector calls speech (probability >= 0.5), ``speech_recall``: fraction of the talkers' speech frames
   it calls speech (:func:`speech_detector_figures`; the tracker labels its tracks by the detector);
+- ``reference_share`` (the tracker): the share of the steered talker track's hits in which a pair of the
+  reference device took a peak (``report.json`` ``sources.device_matched_share[0]``; ``None`` without hits); below
+  0.7 the stream says the reference hears the talker poorly (:meth:`estimators.SourceTracker.reference_heard_poorly`);
 - two talkers: ``turn_latency_s`` per turn change, the time until the steered TOA is within 0.25 ms of the new
   talker for 5 consecutive frames (the turn's length if never).
 
@@ -452,6 +455,8 @@ def run_scene(args) -> dict:
                "true_toa_db": enh.get("true_toa_async_equal", {}).get("si_sdr_db", float("nan")),
                "best_single_db": enh["best_single_device"]["si_sdr_db"],
                **_steer_figures(res.pipeline, fixture), "run_s": round(time.perf_counter() - t0, 1)}
+        if "sources" in res.report:   # the tracker: the reference's share of the steered track's hits
+            fig["reference_share"] = res.report["sources"]["device_matched_share"][0]
         row[est] = fig
     return row
 

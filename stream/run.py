@@ -39,6 +39,15 @@ NO_TALKER_OUTPUT = ("the output is the average of the aligned devices, or the re
                     "would point at a noise source.")
 
 
+def reference_note(name: str, share: float, others: float) -> str:
+    """The sentence for a reference device the steered talker track rarely measured
+    (:meth:`estimators.SourceTracker.reference_heard_poorly`): what it means and what to do."""
+    return (f"The reference device '{name}' took part in only {100 * share:.0f} % of the talker track's measurements "
+            f"(the other devices: {100 * others:.0f} %, median): it hears the talker poorly, and since every device's "
+            "steering and the output's timing are counted from it, they follow guesses there; put a device near the "
+            "talker first (replay: its file first; live: its --input first; the aggregator: first in --expect).")
+
+
 @dataclass
 class RunOutcome:
     """What a run produced: the report (also in report.json) and the pipeline (for tests)."""
@@ -473,6 +482,9 @@ def _finalise(report, out, cfg, pipeline, layout, fixture, names, collector, t_w
                         "is not speech, --estimator kalman steers at whatever is loudest).")
             elif not any(t["kind"] == "speech" for t in sources["tracks"]):
                 note = f"Speech was detected but no talker could be tracked; {NO_TALKER_OUTPUT}"
+            poorly = pipeline.tracker.reference_heard_poorly()
+            if note is None and poorly is not None:
+                note = reference_note(layout.channels[0].name, *poorly)
             if note is not None:   # the run's log collector is already detached here
                 log.warning(note)
                 collector.messages.append(note)

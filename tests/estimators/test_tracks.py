@@ -955,3 +955,41 @@ def test_a_talkers_onset_born_as_noise_does_not_make_the_output_the_reference_de
             noise += 1
             assert tr.noise_at(NOISE), t
     assert noise
+
+
+def test_a_reference_device_the_talker_track_rarely_measures_is_said_to_hear_poorly():
+    """The talker is heard by every device for 1.5 s, then device 0's pairs carry no peak of it (the reference sits
+    far from the talker, behind a reflection) while the four others keep hearing it. Device 0 is the origin of every
+    TOA and of the output's time, so the stream says so: its share of the steered track's hits falls below
+    ``REFERENCE_SHARE_MIN``; a reference in every hit, or left out of the stream (not usable), is not reported."""
+    from estimators.tracks import REFERENCE_MIN_HITS, REFERENCE_SHARE_MIN
+    rng = np.random.default_rng(5)
+    tr = _tracker()
+    t = _talk(tr, rng, lambda t: TALKER_A, 1.5)
+    track = tr.steered
+    assert track is not None and tr.n_steered_hits >= REFERENCE_MIN_HITS
+    assert tr.reference_heard_poorly() is None
+    assert tr.report()["device_matched_share"] == [1.0] * M
+    on_0 = pair_matrix(M)[:, 0] != 0
+    for _ in range(int(2.0 / DT)):
+        tdoa, value = _peaks([(TALKER_A, 0.5)], rng)
+        tdoa[on_0, 0] = rng.uniform(-0.01, 0.01, on_0.sum())   # the talker's peak gone from device 0's pairs
+        value[on_0, 0] = 0.1
+        tr.update(tdoa, value, speech_probability=1.0, usable=USABLE, time_s=t)
+        t += DT
+    assert tr.steered is track
+    share, others = tr.reference_heard_poorly()
+    assert share < REFERENCE_SHARE_MIN and others == 1.0
+    assert tr.report()["device_matched_share"][0] == pytest.approx(share, abs=1e-3)
+    # a reference the stream left out (its pairs not usable) is counted in none of the hits: nothing to say
+    left_out = _tracker()
+    usable = USABLE.copy()
+    usable[0] = False
+    t = 0.0
+    for _ in range(int(3.0 / DT)):
+        tdoa, value = _peaks([(TALKER_A, 0.5)], rng)
+        left_out.update(tdoa, value, speech_probability=1.0, usable=usable, time_s=t)
+        t += DT
+    assert left_out.n_steered_hits >= REFERENCE_MIN_HITS
+    assert left_out.reference_heard_poorly() is None
+    assert left_out.report()["device_matched_share"][0] is None

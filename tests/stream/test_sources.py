@@ -249,6 +249,11 @@ def test_a_device_that_hears_only_noise_leaves_the_talker_tracked_on_the_others(
     assert np.mean(err[late & steered] <= 2.5e-4) > 0.9
     enh = outcome.report["metrics"]["enhancement"]
     assert enh["engine"]["si_sdr_db"] > enh["best_single_device"]["si_sdr_db"] + 3.0
+    # the report shows which device the talker's track does not measure: device 3 is never usable, every other
+    # device takes part in nearly every hit, and the reference is not said to hear the talker poorly
+    share = outcome.report["sources"]["device_matched_share"]
+    assert share[3] is None and min(share[d] for d in others) > 0.9
+    assert not any("took part in only" in m for m in outcome.report["messages"])
 
 
 def test_a_reference_that_hears_only_noise_is_left_out_and_the_others_are_aligned_on_each_other(tmp_path):
@@ -265,6 +270,9 @@ def test_a_reference_that_hears_only_noise_is_left_out_and_the_others_are_aligne
     assert any("reference device 0 shares no clear sound" in m and "measured against device 1" in m
                for m in report["messages"])
     assert not any("No speech" in m for m in report["messages"])
+    # left out, it is in none of the talker track's measurements: not a reference that hears poorly
+    assert report["sources"]["device_matched_share"][0] is None
+    assert not any("took part in only" in m for m in report["messages"])
     without = json.loads((tmp_path / "b" / "report.json").read_text())["stream"]["coarse_offsets_s"]
     assert report["stream"]["coarse_offsets_s"][1:] == without
     assert np.mean(np.asarray(a.pipeline.state.track_id) >= 0) > 0.9
