@@ -665,6 +665,19 @@ def test_a_noise_source_found_in_the_pauses_on_a_talker_goes_when_the_talker_is_
         assert talker.death_reason.startswith(f"merged into noise track {noise.track_id}")
 
 
+def _talk_unheard_at(tr, rng, toa, device, seconds, t):
+    """``seconds`` of speech frames of a talker at ``toa`` whose peak is gone from ``device``'s pairs (a far device
+    in a reverberant room hears only reflections) into ``tr`` from ``t``; returns the time of the next frame."""
+    on = pair_matrix(M)[:, device] != 0
+    for _ in range(int(seconds / DT)):
+        tdoa, value = _peaks([(toa, 0.5)], rng)
+        tdoa[on, 0] = rng.uniform(-0.01, 0.01, on.sum())
+        value[on, 0] = 0.1
+        tr.update(tdoa, value, speech_probability=1.0, usable=USABLE, time_s=t)
+        t += DT
+    return t
+
+
 @pytest.mark.parametrize("unpinned_s", [0.25, None])
 def test_a_device_no_pair_measures_goes_on_at_clock_drift_not_at_the_last_motion(unpinned_s):
     """A talker walks for 2 s (device 3's TOA changes by 2 ms/s) and stops; from then on device 3's pairs carry no
@@ -685,12 +698,7 @@ def test_a_device_no_pair_measures_goes_on_at_clock_drift_not_at_the_last_motion
         t += DT
     track = tr.steered
     assert abs(track.toa_s[3] - toa[3]) < 2.5e-4
-    for _ in range(int(2.0 / DT)):
-        tdoa, value = _peaks([(toa, 0.5)], rng)
-        tdoa[on_3, 0] = rng.uniform(-0.01, 0.01, on_3.sum())   # the talker's peak gone from device 3's pairs
-        value[on_3, 0] = 0.1
-        tr.update(tdoa, value, speech_probability=1.0, usable=USABLE, time_s=t)
-        t += DT
+    t = _talk_unheard_at(tr, rng, toa, 3, 2.0, t)
     assert tr.steered is track
     err = abs(track.toa_s[3] - toa[3])
     others = np.abs(track.toa_s - toa)[[1, 2, 4]]
@@ -970,13 +978,7 @@ def test_a_reference_device_the_talker_track_rarely_measures_is_said_to_hear_poo
     assert track is not None and tr.n_steered_hits >= REFERENCE_MIN_HITS
     assert tr.reference_heard_poorly() is None
     assert tr.report()["device_matched_share"] == [1.0] * M
-    on_0 = pair_matrix(M)[:, 0] != 0
-    for _ in range(int(2.0 / DT)):
-        tdoa, value = _peaks([(TALKER_A, 0.5)], rng)
-        tdoa[on_0, 0] = rng.uniform(-0.01, 0.01, on_0.sum())   # the talker's peak gone from device 0's pairs
-        value[on_0, 0] = 0.1
-        tr.update(tdoa, value, speech_probability=1.0, usable=USABLE, time_s=t)
-        t += DT
+    t = _talk_unheard_at(tr, rng, TALKER_A, 0, 2.0, t)
     assert tr.steered is track
     share, others = tr.reference_heard_poorly()
     assert share < REFERENCE_SHARE_MIN and others == 1.0
