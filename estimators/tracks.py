@@ -632,6 +632,7 @@ class SourceTracker:
             # the steered track's hits, and per device those where a pair of it took a peak (REFERENCE_SHARE_MIN)
             self.n_steered_hits = 0
             self._device_matched = np.zeros(self.n_devices, np.int64)
+            self._matched_at = np.zeros(self.n_devices, np.int64)   # per device, the last such hit (its count)
             self._device_usable = np.zeros(self.n_devices, np.int64)
             self._usable = np.ones(self.n_devices, bool)   # the frame's usable devices (update)
             self._next_id = 0
@@ -840,9 +841,8 @@ class SourceTracker:
                     t.speech_value += (value - t.speech_value) / min(t.n_speech_values, 50)
                     if t is self.steered:
                         self.n_steered_hits += 1
-                        matched = np.zeros(self.n_devices, bool)
-                        matched[self._pairs[took].ravel()] = True
-                        self._device_matched += matched
+                        _mark_measured(self._matched_at, took, self._pairs, self.n_steered_hits)
+                        self._device_matched += self._matched_at == self.n_steered_hits
                         self._device_usable += self._usable
                     self._record_hit(t, time_s, value, measured=True)
                 elif t is self.steered:
