@@ -60,7 +60,9 @@ N best GCC-PHAT peaks of every pair (:class:`estimators.multipeak.NoiseAwareGcc`
   about half a second of speech frames) move that device there when they outweigh staying ``REANCHOR_RATIO``
   to one (``n_reanchored`` in the report). A peak where a confirmed noise track is predicted in its pair does
   not vote for a move (``anchor_noise_s``): a noise heard in speech frames (a dish clatter) must not carry the
-  beam onto itself one device at a time.
+  beam onto itself one device at a time. The reference device (device 0, the origin of every TOA and of the
+  output's time) is not moved while it is heard poorly (:meth:`SourceTracker.reference_heard_poorly`): its pairs'
+  peaks are then not the talker's, and its move would shift every other device's steering and the output with it.
 - **Take-over** (``"active-talker"``): a talker track confirmed within ``TAKEOVER_S`` (every device) of the
   steered track is the steered talker where it is now (a walking talker outruns a track's capped gate); the
   steered track takes its state and the beam follows at once (``n_taken_over`` in the report).
@@ -920,6 +922,12 @@ class SourceTracker:
                                  self._anchor_gate_bins, REANCHOR_RATIO, self._anchor_min_votes,
                                  noise_lag, self.anchor_noise_s)
         if dev < 0:
+            return False
+        if dev == 0 and self._device_usable[0] >= REFERENCE_MIN_HITS and \
+                self._device_matched[0] < REFERENCE_SHARE_MIN * self._device_usable[0]:
+            # a reference heard this poorly (:meth:`reference_heard_poorly`) is not moved: its pairs' peaks are
+            # not the talker's, and a move shifts every other device's steering and the output's time with it
+            votes[0] = 0.0
             return False
         delta = np.zeros(self.n_devices)
         delta[dev] = (best - c) * self._bin_s
