@@ -63,7 +63,10 @@ power over the speech frames ``S_i`` and over the pauses ``L_i`` (at least -20 d
 combining on the channels brought to one floor (output SNR = sum of the channels' SNRs when their noises are
 independent), so a device next to the talker counts more. Unlike ``"adaptive"`` it still fits nothing to the
 talker: two averages of frame power per device, split by the speech detector. The engine uses ``p = 1``
-(``EngineConfig.level_snr_exponent``); this class's default is 0.
+(``EngineConfig.level_snr_exponent``); this class's default is 0. :meth:`DelayAndSum.set_level_factors` multiplies
+each "level" weight by a factor the caller gives (held within ``level_max_ratio`` again): the pipeline's is each
+device's matched GCC peak height on the steered talker track over the median device's, to the power
+``EngineConfig.level_height_exponent``: the SNR is a power ratio and counts a far device's reverberation as signal.
 
 Invalid channels (``valid[i] == False``, a non-finite ``toa_s[i]`` or any non-finite value in the
 channel's spectrum) get weight 0 and are left out of the statistics for that frame; the others are
@@ -130,10 +133,11 @@ _MODES = {"equal": _EQUAL, "adaptive": _MRC, "level": _LEVEL}
 # f64, float64 (M + 1 + _N_WORK, M): the smoothed cross-power C (M rows), the gains g (1 row), then 13
 # work rows: validity (0/1), e_1 = exp(i omega_1 toa), the running fine phasor, the rank-one fit's
 # gains, its products, the float64 weights, and the state of "level": each channel's average log power
-# over the pauses (its noise floor) and its bias-correction mass, then the same over speech frames.
-_N_WORK = 13
-_VALID, _E_RE, _E_IM, _F_RE, _F_IM, _G, _GM, _G_NEW, _W, _LOG_FLOOR, _FLOOR_MASS, _LOG_SPEECH, _SPEECH_MASS = \
-    range(_N_WORK)
+# over the pauses (its noise floor) and its bias-correction mass, then the same over speech frames, then the
+# log factors the caller gives each channel's "level" weight (:meth:`DelayAndSum.set_level_factors`).
+_N_WORK = 14
+(_VALID, _E_RE, _E_IM, _F_RE, _F_IM, _G, _GM, _G_NEW, _W, _LOG_FLOOR, _FLOOR_MASS, _LOG_SPEECH, _SPEECH_MASS,
+ _LOG_FACTOR) = range(_N_WORK)
 # f32, float32: [channel weights (M) | fine phasors (M, 2, K) | steering row (2 J K)].
 _TWO_PI = 2.0 * math.pi
 
@@ -277,6 +281,8 @@ def _level_weights(work: np.ndarray, fstate: np.ndarray, n_ok: int, weights: np.
             if snr_exp > 0.0 and k2 > 0 and mass[i] >= min_mass and smass[i] > 0.0:
                 # maximal-ratio combining on the channels brought to one floor: amplitude SNR ^ exponent
                 e = min(max(e + 0.5 * snr_exp * (_log_snr(speech[i] - floor[i]) - snr_mid_log), -limit), limit)
+            if work[_LOG_FACTOR, i] != 0.0:
+                e = min(max(e + work[_LOG_FACTOR, i], -limit), limit)
             w64[i] = math.exp(e)
             total += w64[i]
     for i in range(m):
@@ -720,6 +726,15 @@ class DelayAndSum:
         else:   # converted, shapes checked (the kernel does not check them)
             X, _, ok = self._converted(spectra, np.zeros(self.n_channels), valid)
             _learn_floors(X, ok, self._level_work, self._fstate, pause)
+
+    def set_level_factors(self, log_factors: np.ndarray | None) -> None:
+        """``"level"``: multiply each channel's weight by ``exp(log_factors[i])`` (then held within
+        ``level_max_ratio`` of the median channel's, as the rest); None: no factors. The pipeline gives the
+        steered talker track's per-device peak heights here (``EngineConfig.level_height_exponent``)."""
+        if log_factors is None:
+            self._level_work[_LOG_FACTOR] = 0.0
+        else:
+            self._level_work[_LOG_FACTOR] = log_factors
 
     @property
     def channel_weights(self) -> np.ndarray:

@@ -117,6 +117,8 @@ LOUDER_MIN_HITS = 15              # hits in speech frames and in the pauses befo
 LOUDER_MAX_HITS = 50              # ... and in speech frames after which it is not (a talker's first second)
 LOUDER_EARLY_HITS = 4             # ... but this many speech hits are enough where the peaks are this many times
 LOUDER_EARLY_RATIO = 2.0          # higher than in the pauses
+HEIGHT_S = 2.0                    # time constant of a talker track's per-device matched peak heights (its hits)
+HEIGHT_FLOOR = 0.02               # ... heights below this count as this in the beam's weights
 REFERENCE_SHARE_MIN = 0.7         # the reference device in fewer of the steered track's hits is heard poorly ...
 REFERENCE_MIN_HITS = 60           # ... judged after this many hits (about 1 s of speech at the default 16 ms)
 NOISE_KNOWN_S = 0.5               # a noise track this old may make the output the reference device (noise_at)
@@ -191,6 +193,38 @@ def _anchor_vote(votes, peak_tdoa, peak_value, pred, pair_ok, pair_idx, decay, i
                 top = best + 1
             dev, dev_bin, dev_votes = i, top, v
     return dev, dev_bin
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _note_heights(height, conf, pair_ok, pair_idx, beta, total, count):
+    """One hit of a talker track into ``height`` (M,): per device, the mean of ``conf`` (the matched peak heights,
+    0 where a pair took none) over its pairs with ``pair_ok``; NaN entries (never measured) take it as it is, the
+    others move by ``beta`` towards it; a device with no usable pair keeps its value. ``total``, ``count``: (M,)
+    work arrays."""
+    total[:] = 0.0
+    count[:] = 0.0
+    for q in range(conf.shape[0]):
+        if pair_ok[q]:
+            for d in (pair_idx[q, 0], pair_idx[q, 1]):
+                total[d] += conf[q]
+                count[d] += 1.0
+    for d in range(height.shape[0]):
+        if count[d] > 0.0:
+            h = total[d] / count[d]
+            height[d] = h if np.isnan(height[d]) else height[d] + beta * (h - height[d])
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _height_factors(height, exponent, floor, out):
+    """``out[d] = exponent * log(max(height[d], floor) / max(median, floor))`` over the measured (finite) heights;
+    0 for a device never measured. Returns False (``out`` untouched) when none is."""
+    seen = height[np.isfinite(height)]
+    if seen.shape[0] == 0:
+        return False
+    med = max(np.median(seen), floor)
+    for d in range(height.shape[0]):
+        out[d] = exponent * math.log(max(height[d], floor) / med) if np.isfinite(height[d]) else 0.0
+    return True
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
@@ -376,6 +410,8 @@ class Track:
     miss_run: int = 0                # speech frames since its last hit
     fast_activity: float = 0.0       # as ``activity``, over FAST_ACTIVITY_S
     anchor_votes: np.ndarray | None = field(default=None, repr=False)   # (M, bins): see SourceTracker._reanchor
+    device_height: np.ndarray | None = None   # (M,) EMA over its hits (HEIGHT_S) of each device's matched peak
+    #                                            height over its usable pairs (0 where a pair took none)
     drift_rate_s_per_s: np.ndarray | None = None   # EMA over its hits (3 s) of its TOA rates: clock drift
     last_measured: np.ndarray | None = None   # (M,) int64: per device, the speech frame (count) a matched pair
     #                                           measured it last (its birth's at first)
@@ -435,6 +471,9 @@ class Track:
                 # its matched peak heights in speech frames and in the pauses (``louder_ratio``; None without hits)
                 "speech_peak": round(self.speech_value, 4) if self.n_speech_values else None,
                 "pause_peak": round(self.quiet_value, 4) if self.n_quiet_values else None,
+                # a talker track's per device mean matched peak height over its pairs (HEIGHT_S; None: never)
+                "device_peak": (None if self.device_height is None else
+                                [None if not np.isfinite(v) else round(float(v), 4) for v in self.device_height]),
                 "relabels": [{"time_s": round(t, 3), "from": a, "to": b, "why": why}
                              for t, a, b, why in self.relabels]}
 
@@ -582,6 +621,8 @@ class SourceTracker:
         self._pinv_cache: dict[bytes, np.ndarray] = {}
         # per device r, (M, M-1) arrays for the compiled birth (:func:`_birth_support`): the pairs (r, j) / (j, r)
         # with every other device j, that device j, and the sign that turns the pair's TDOA into toa_j - toa_r
+        self._height_sum, self._height_n = np.zeros(self.n_devices), np.zeros(self.n_devices)   # work arrays
+        self._height_beta = 1.0 - math.exp(-self.frame_period_s / HEIGHT_S)
         self._star_idx = np.array([np.flatnonzero((self._pairs == r).any(axis=1)) for r in range(self.n_devices)],
                                   np.int64).reshape(self.n_devices, -1)
         r_first = self._pairs[self._star_idx, 0] == np.arange(self.n_devices)[:, None]
@@ -614,6 +655,7 @@ class SourceTracker:
                 value[:, 0] = 0.5
             tracker.update(peak_tdoa, peak_value, speech_probability=1.0 if k < n_speech else 0.0,
                            usable=np.ones(m, bool), time_s=k * frame_period_s, noise_peaks=lambda: noise)
+        _height_factors(np.full(m, 0.5), 1.0, HEIGHT_FLOOR, np.zeros(m))   # the pipeline's, for the beam
 
     # -- state ---------------------------------------------------------------------------------------
     def reset(self) -> None:
@@ -841,6 +883,8 @@ class SourceTracker:
                         t.oldest_measured = _mark_measured(t.last_measured, took, self._pairs, self.n_speech_frames)
                     t.n_speech_values += 1
                     t.speech_value += (value - t.speech_value) / min(t.n_speech_values, 50)
+                    if t.kind == "speech":
+                        self._note_heights(t, conf, ok)
                     if t is self.steered:
                         self.n_steered_hits += 1
                         _mark_measured(self._matched_at, took, self._pairs, self.n_steered_hits)
@@ -902,6 +946,31 @@ class SourceTracker:
         conf = np.where(took, peak_value[self._rows, k], 0.0)
         t.kalman.update(tdoa, conf)
         return took, conf
+
+    def _note_heights(self, t: Track, conf: np.ndarray, pair_ok: np.ndarray) -> None:
+        """A talker track's hit: each device's mean matched peak height over its usable pairs (a pair that took
+        no peak counts 0) into ``t.device_height`` (EMA over ``HEIGHT_S`` of its hits; :func:`_note_heights`)."""
+        if t.device_height is None:
+            t.device_height = np.full(self.n_devices, np.nan)
+        _note_heights(t.device_height, conf, pair_ok, self._pairs, self._height_beta, self._height_sum,
+                      self._height_n)
+
+    def steered_height_factors(self, exponent: float, out: np.ndarray) -> bool:
+        """Into ``out`` (M,): ``exponent`` times the log of each device's matched peak height on the steered
+        talker track over the median device's (heights below ``HEIGHT_FLOOR`` count as it; 0 for a device never
+        measured): the log factors of the beam's ``level`` weights (``EngineConfig.level_height_exponent``).
+        False when nothing is steered or nothing measured."""
+        t = self.steered
+        if t is None or t.device_height is None:
+            return False
+        return _height_factors(t.device_height, float(exponent), HEIGHT_FLOOR, out)
+
+    @property
+    def steered_device_height(self) -> np.ndarray | None:
+        """The steered talker track's per-device matched peak heights (:attr:`Track.device_height`; NaN for a
+        device none of whose pairs was usable in its hits), or None."""
+        t = self.steered
+        return None if t is None else t.device_height
 
     def _reanchor(self, t: Track, peak_tdoa, peak_value, pred, pair_ok, noise_lag) -> bool:
         """One device of the steered track locked on a reflection or a side lobe: all its pairs show a peak at

@@ -62,6 +62,10 @@ def _add_engine_options(p: argparse.ArgumentParser) -> None:
     g.add_argument("--level-snr-exponent", type=float,
                    help="--weighting level: each weight also times (the device's SNR over the median's)^(this / 2), "
                         "in [0, 2] (default 1: maximal-ratio combining; 0: the noise floors alone)")
+    g.add_argument("--level-height-exponent", type=float,
+                   help="--weighting level with the tracker: each weight also times (the device's mean matched GCC "
+                        "peak height on the steered talker track over the median device's)^this, in [0, 4] "
+                        "(default 1; 0: off)")
     g.add_argument("--accel-std-s-per-s2", type=float, help="Kalman process noise: TOA acceleration std")
     g.add_argument("--tdoa-std-s", type=float, help="Kalman measurement noise: TDOA std in seconds")
     g.add_argument("--gate-probability", type=float, help="Kalman clutter gate (chi-square probability)")

@@ -54,6 +54,8 @@ class EngineConfig:
     weighting: Weighting = "level"   # beamform.DelayAndSum; "level" learns from the tracker's speech detector
     # (the other estimators have none: for them it is "equal")
     level_snr_exponent: float = 1.0  # "level": weights also ~ (device SNR / median SNR)^(this / 2); 1 is MRC
+    level_height_exponent: float = 1.0   # "level" with the tracker: weights also ~ (the device's mean matched GCC
+    #                                      peak height on the steered talker track / the median device's)^this
     # Kalman TOA (eqs. 13-17)
     accel_std_s_per_s2: float = 1e-3
     tdoa_std_s: float = 5e-4
@@ -176,6 +178,8 @@ class EngineConfig:
             raise ConfigError(f"switch_ratio={self.switch_ratio} must be >= 1")
         if self.weighting not in ("equal", "adaptive", "level"):
             raise ConfigError(f"weighting={self.weighting!r} must be 'equal', 'adaptive' or 'level'")
+        if not (math.isfinite(self.level_height_exponent) and 0 <= self.level_height_exponent <= 4):
+            raise ConfigError(f"level_height_exponent={self.level_height_exponent} must be in 0..4")
         if not (math.isfinite(self.level_snr_exponent) and 0 <= self.level_snr_exponent <= 2):
             raise ConfigError(f"level_snr_exponent={self.level_snr_exponent} must be in 0..2 (1: maximal-ratio "
                               "combining, 0: the noise floors alone)")

@@ -341,6 +341,9 @@ class Pipeline:
                                         hop_samples=config.hop_samples, sample_rate_hz=fs,
                                         weighting=config.weighting,
                                         level_snr_exponent=config.level_snr_exponent)
+        self._height_exp = config.level_height_exponent if self._level and self.tracker is not None else 0.0
+        self._height_key = (-1, 0)
+        self._height_log = np.zeros(self.n_devices)
         self.keep_input = keep_input
         self._results: list[HopResult] = []
         self.counters = StreamCounters()
@@ -607,7 +610,23 @@ class Pipeline:
             fine = total_toa_s - rate * (decided_s - time_s) - self._coarse_s(block)
         if fallback:
             valid = self._reference_only_of(valid)
+        if self._height_exp:
+            self._height_factors(track_id)
         self._steer(spectra, block, time_s, tdoa, valid, fine, gated, track_id, p_speech)
+
+    def _height_factors(self, track_id: int) -> None:
+        """``level_height_exponent``: each device's weight times (its matched peak height on the steered talker
+        track / the median device's) to that power (:meth:`SourceTracker.steered_height_factors`); none while
+        nothing is steered. Computed again only when the steered track or its hits change."""
+        t = self.tracker.steered if track_id >= 0 else None
+        key = (-1, 0) if t is None else (t.track_id, self.tracker.n_steered_hits)
+        if key == self._height_key:
+            return
+        self._height_key = key
+        if t is not None and self.tracker.steered_height_factors(self._height_exp, self._height_log):
+            self.das.set_level_factors(self._height_log)
+        else:
+            self.das.set_level_factors(None)
 
     def _steer(self, spectra, block: Block, time_s: float, tdoa: TdoaFrame, valid: np.ndarray, fine: np.ndarray,
                gated: bool, track_id: int, p_speech: float) -> None:

@@ -647,3 +647,30 @@ def test_level_snr_exponent_gives_maximal_ratio_weights_on_the_floors():
     assert out[1.0] > out[0.0] + 1.0
     with pytest.raises(ValueError, match="level_snr_exponent"):
         DelayAndSum(2, frame_samples=frame, hop_samples=hop, sample_rate_hz=FS_HZ, level_snr_exponent=-1)
+
+
+def test_level_factors_multiply_the_level_weights_within_their_ratio():
+    # three devices of one floor and one SNR: "level" is equal weighting; factors e^f multiply the weights (the
+    # pipeline's per-device peak heights on the steered talker, level_height_exponent), held within
+    # level_max_ratio of the median; None takes them away
+    rng = np.random.default_rng(15)
+    frame, hop = 512, 128
+    n = int(4 * FS_HZ)
+    talk = rng.standard_normal(n) * 0.1
+    talk[: n // 2] = 0.0
+    x = (talk[:, None] + 0.05 * rng.standard_normal((n, 3))).astype(np.float32)
+    quiet = np.arange(n // hop) * hop < n // 2
+    das = DelayAndSum(3, frame_samples=frame, hop_samples=hop, sample_rate_hz=FS_HZ, weighting="level")
+    _stream_quiet(das, x, quiet)
+    np.testing.assert_allclose(das.channel_weights, 1 / 3, rtol=0.02)
+    das.set_level_factors(np.log([2.0, 1.0, 0.5]))
+    _stream_quiet(das, x[-4 * hop:], np.zeros(4, bool))
+    w = das.channel_weights
+    np.testing.assert_allclose(w / w[1], [2.0, 1.0, 0.5], rtol=0.03)
+    das.set_level_factors(np.log([100.0, 1.0, 1.0]))    # held within 4 times the median channel's
+    _stream_quiet(das, x[-4 * hop:], np.zeros(4, bool))
+    w = das.channel_weights
+    assert w[0] / w[1] == pytest.approx(4.0, rel=0.03)
+    das.set_level_factors(None)
+    _stream_quiet(das, x[-4 * hop:], np.zeros(4, bool))
+    np.testing.assert_allclose(das.channel_weights, 1 / 3, rtol=0.02)

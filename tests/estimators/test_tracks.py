@@ -1034,3 +1034,23 @@ def test_a_reference_heard_poorly_is_not_re_anchored_onto_another_peak(monkeypat
         assert tr.reference_heard_poorly() is not None
     else:
         assert tr.n_reanchored >= 1 and abs(moved - 3e-3) < 5e-4
+
+
+def test_a_talker_tracks_peak_heights_per_device_say_how_well_each_device_hears_it():
+    """Device 3's pairs peak at 0.2 on the talker, every other pair at 0.5: the track's per-device mean matched
+    height (over the device's pairs, ``HEIGHT_S`` average of its hits) is 0.2 for device 3 and (3 x 0.5 + 0.2) / 4
+    for the others; the report has it per track. The beam weighs devices by it with ``level_height_exponent``."""
+    rng = np.random.default_rng(3)
+    tr = _tracker()
+    on_3 = pair_matrix(M)[:, 3] != 0
+    t = 0.0
+    for _ in range(int(2.0 / DT)):
+        tdoa, value = _peaks([(TALKER_A, 0.5)], rng)
+        value[on_3, 0] = 0.2
+        tr.update(tdoa, value, speech_probability=1.0, usable=USABLE, time_s=t)
+        t += DT
+    h = tr.steered_device_height
+    np.testing.assert_allclose(h, [0.425, 0.425, 0.425, 0.2, 0.425], atol=0.01)
+    summary = next(s for s in tr.report()["tracks"] if s["id"] == tr.steered.track_id)
+    np.testing.assert_allclose(summary["device_peak"], h, atol=1e-4)
+    assert tr.steered.device_height is not None and tr.steered.kind == "speech"

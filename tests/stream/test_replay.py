@@ -209,6 +209,8 @@ def test_bad_options_are_one_sentence(make_devices, tmp_path, capsys):
         run_replay(paths, tmp_path / "o", config=_cfg(frame_samples=1024, hop_samples=300))
     assert main(["replay", *map(str, paths), "--out", str(tmp_path / "o"), "--level-snr-exponent", "3"]) == 2
     assert "level_snr_exponent=3.0 must be in 0..2" in capsys.readouterr().err
+    assert main(["replay", *map(str, paths), "--out", str(tmp_path / "o"), "--level-height-exponent", "5"]) == 2
+    assert "level_height_exponent=5.0 must be in 0..4" in capsys.readouterr().err
     cfg = tmp_path / "c.toml"
     cfg.write_text("estimatr = 'kalman'\n")
     assert main(["replay", *map(str, paths), "--out", str(tmp_path / "o"), "--config", str(cfg)]) == 2
@@ -332,6 +334,7 @@ def test_the_trackers_kernels_are_compiled_before_the_stream_not_at_its_first_ta
                              time_s=k * 0.016, noise_peaks=lambda: noise)
         after = signatures()
         used = [(T, "_anchor_vote"), (T, "_predict_gate"), (T, "_pick_peaks"), (T, "_solve_pairs"),
+                (T, "_note_heights"), (T, "_height_factors"),
                 (K, "_kalman_step"), (A, "_cut_block"), (C, "_frame_stats")]
         print(all(before[m.__name__, k] > 0 for m, k in used), [k for k in after if after[k] > before[k]],
               sorted(t.kind for t in p.tracker.tracks))

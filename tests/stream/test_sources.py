@@ -326,3 +326,29 @@ def test_toa_plot_says_where_an_estimate_is_beyond_the_truths_view(tmp_path):
     path = plot_toa_tracks(tmp_path / "toa.png", time_s=t, toa_s=est, true_toa_s=true,
                            device_names=["a", "b", "c"])
     assert path.stat().st_size > 10_000
+
+
+def test_the_beam_weighs_each_device_by_how_well_it_hears_the_steered_talker(tmp_path):
+    """``level_height_exponent``: every talker track keeps each device's mean matched GCC peak height over its
+    pairs (``report.json`` ``device_peak``); the beam multiplies each device's `level` weight by its height on the
+    steered track over the median device's, to that power. On the two_talkers fixture (a fan above the table)
+    the device the steered talker's peaks show least gets less weight than without it, the one they show most
+    more, and the output is no worse."""
+    fixture = FIXTURE.parent / "two_talkers"
+    runs = {}
+    for q in (0.0, 1.0):
+        outcome = run_replay([fixture], tmp_path / f"q{q}",
+                             config=EngineConfig(estimator="tracks", level_height_exponent=q, **FAST))
+        runs[q] = (outcome, json.loads((tmp_path / f"q{q}" / "report.json").read_text()))
+    outcome, report = runs[1.0]
+    tracker = outcome.pipeline.tracker
+    h = tracker.steered_device_height
+    assert h is not None and np.isfinite(h).all()
+    summary = next(t for t in report["sources"]["tracks"] if t["id"] == tracker.steered.track_id)
+    np.testing.assert_allclose(summary["device_peak"], h, atol=1e-4)
+    w0 = np.asarray(runs[0.0][1]["stream"]["final_channel_weights"])
+    w1 = np.asarray(report["stream"]["final_channel_weights"])
+    change = (w1 / np.median(w1)) / (w0 / np.median(w0))
+    assert change[np.argmin(h)] < 1.0 < change[np.argmax(h)], (h, change)
+    enh = {q: r["metrics"]["enhancement"]["engine"]["si_sdr_db"] for q, (_, r) in runs.items()}
+    assert enh[1.0] > enh[0.0] - 0.1, enh
