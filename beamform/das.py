@@ -130,7 +130,7 @@ _STARTUP_ITER = 5
 _N_FINE = 6       # K: fine phasors per channel (see _steer)
 _EQUAL, _MRC, _LEVEL = 0, 1, 2
 _MODES = {"equal": _EQUAL, "adaptive": _MRC, "level": _LEVEL}
-# f64, float64 (M + 1 + _N_WORK, M): the smoothed cross-power C (M rows), the gains g (1 row), then 13
+# f64, float64 (M + 1 + _N_WORK, M): the smoothed cross-power C (M rows), the gains g (1 row), then 14
 # work rows: validity (0/1), e_1 = exp(i omega_1 toa), the running fine phasor, the rank-one fit's
 # gains, its products, the float64 weights, and the state of "level": each channel's average log power
 # over the pauses (its noise floor) and its bias-correction mass, then the same over speech frames, then the

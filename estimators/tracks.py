@@ -619,10 +619,11 @@ class SourceTracker:
         self._H0 = pair_matrix(self.n_devices)[:, 1:]
         self._rows = np.arange(self.n_pairs)
         self._pinv_cache: dict[bytes, np.ndarray] = {}
+        # the talker tracks' per-device peak heights (:func:`_note_heights`): its work arrays and its EMA step
+        self._height_sum, self._height_n = np.zeros(self.n_devices), np.zeros(self.n_devices)
+        self._height_beta = 1.0 - math.exp(-self.frame_period_s / HEIGHT_S)
         # per device r, (M, M-1) arrays for the compiled birth (:func:`_birth_support`): the pairs (r, j) / (j, r)
         # with every other device j, that device j, and the sign that turns the pair's TDOA into toa_j - toa_r
-        self._height_sum, self._height_n = np.zeros(self.n_devices), np.zeros(self.n_devices)   # work arrays
-        self._height_beta = 1.0 - math.exp(-self.frame_period_s / HEIGHT_S)
         self._star_idx = np.array([np.flatnonzero((self._pairs == r).any(axis=1)) for r in range(self.n_devices)],
                                   np.int64).reshape(self.n_devices, -1)
         r_first = self._pairs[self._star_idx, 0] == np.arange(self.n_devices)[:, None]
