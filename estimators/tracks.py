@@ -742,6 +742,12 @@ class SourceTracker:
         return (self._time_s - t.born_s >= NOISE_KNOWN_S
                 and not t.talker_like(self.noise_quiet_activity))
 
+    def _reference_poor(self) -> bool:
+        """A pair of the reference took part in fewer than ``REFERENCE_SHARE_MIN`` of at least
+        ``REFERENCE_MIN_HITS`` hits of the steered track while it was usable (:meth:`reference_heard_poorly`)."""
+        usable = self._device_usable[0]
+        return usable >= REFERENCE_MIN_HITS and self._device_matched[0] < REFERENCE_SHARE_MIN * usable
+
     def reference_heard_poorly(self) -> tuple[float, float] | None:
         """(the reference device's share of the steered track's hits, the other devices' median share) when a pair
         of the reference took part in fewer than ``REFERENCE_SHARE_MIN`` of at least ``REFERENCE_MIN_HITS`` hits
@@ -749,11 +755,9 @@ class SourceTracker:
         pairs hold no peak of the talker, the common part of every device's steering is not measured and follows
         guesses (the spread layout's largest losses: seed 11's `s33` 21 %, seed 7's `s19` 38 %, seed 11's `s09`
         57 %; 82 % or more in the 74 other scenes of seeds 7 and 11 at 5-30 dB with 60 hits or more)."""
-        if self._device_usable[0] < REFERENCE_MIN_HITS:
+        if not self._reference_poor():
             return None
         share = self._device_matched / np.maximum(self._device_usable, 1)
-        if share[0] >= REFERENCE_SHARE_MIN:
-            return None
         return float(share[0]), float(np.median(share[1:][self._device_usable[1:] > 0]))
 
     def report(self) -> dict:
@@ -966,13 +970,6 @@ class SourceTracker:
             return False
         return _height_factors(t.device_height, float(exponent), HEIGHT_FLOOR, out)
 
-    @property
-    def steered_device_height(self) -> np.ndarray | None:
-        """The steered talker track's per-device matched peak heights (:attr:`Track.device_height`; NaN for a
-        device none of whose pairs was usable in its hits), or None."""
-        t = self.steered
-        return None if t is None else t.device_height
-
     def _reanchor(self, t: Track, peak_tdoa, peak_value, pred, pair_ok, noise_lag) -> bool:
         """One device of the steered track locked on a reflection or a side lobe: all its pairs show a peak at
         one other TOA for it, while the others agree with the track. Every peak of pair (i, j) votes for moving
@@ -993,8 +990,7 @@ class SourceTracker:
                                  noise_lag, self.anchor_noise_s)
         if dev < 0:
             return False
-        if dev == 0 and self._device_usable[0] >= REFERENCE_MIN_HITS and \
-                self._device_matched[0] < REFERENCE_SHARE_MIN * self._device_usable[0]:
+        if dev == 0 and self._reference_poor():
             # a reference heard this poorly (:meth:`reference_heard_poorly`) is not moved: its pairs' peaks are
             # not the talker's, and a move shifts every other device's steering and the output's time with it
             votes[0] = 0.0

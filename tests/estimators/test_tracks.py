@@ -1049,7 +1049,7 @@ def test_a_talker_tracks_peak_heights_per_device_say_how_well_each_device_hears_
         value[on_3, 0] = 0.2
         tr.update(tdoa, value, speech_probability=1.0, usable=USABLE, time_s=t)
         t += DT
-    h = tr.steered_device_height
+    h = tr.steered.device_height
     np.testing.assert_allclose(h, [0.425, 0.425, 0.425, 0.2, 0.425], atol=0.01)
     summary = next(s for s in tr.report()["tracks"] if s["id"] == tr.steered.track_id)
     np.testing.assert_allclose(summary["device_peak"], h, atol=1e-4)

@@ -342,7 +342,7 @@ def test_the_beam_weighs_each_device_by_how_well_it_hears_the_steered_talker(tmp
         runs[q] = (outcome, json.loads((tmp_path / f"q{q}" / "report.json").read_text()))
     outcome, report = runs[1.0]
     tracker = outcome.pipeline.tracker
-    h = tracker.steered_device_height
+    h = tracker.steered.device_height
     assert h is not None and np.isfinite(h).all()
     summary = next(t for t in report["sources"]["tracks"] if t["id"] == tracker.steered.track_id)
     np.testing.assert_allclose(summary["device_peak"], h, atol=1e-4)
