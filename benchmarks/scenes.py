@@ -48,6 +48,9 @@ Figures per scene and estimator:
 - ``reference_share`` (the tracker): the share of the steered talker track's hits in which a pair of the
   reference device took a peak (``report.json`` ``sources.device_matched_share[0]``; ``None`` without hits); below
   0.7 the stream says the reference hears the talker poorly (:meth:`estimators.SourceTracker.reference_heard_poorly`);
+- ``unsteered_speech_s`` and ``detected_speech_s`` (the tracker): seconds of the frames the speech detector calls
+  speech with no talker track steered, and of all of them (``report.json`` ``sources.unsteered_speech_s``,
+  ``speech_s``; :meth:`estimators.SourceTracker.unsteered_speech`);
 - two talkers: ``turn_latency_s`` per turn change, the time until the steered TOA is within 0.25 ms of the new
   talker for 5 consecutive frames (the turn's length if never).
 
@@ -457,6 +460,8 @@ def run_scene(args) -> dict:
                **_steer_figures(res.pipeline, fixture), "run_s": round(time.perf_counter() - t0, 1)}
         if "sources" in res.report:   # the tracker: the reference's share of the steered track's hits
             fig["reference_share"] = res.report["sources"]["device_matched_share"][0]
+            fig["unsteered_speech_s"] = res.report["sources"]["unsteered_speech_s"]
+            fig["detected_speech_s"] = res.report["sources"]["speech_s"]
         row[est] = fig
     return row
 

@@ -48,6 +48,13 @@ def reference_note(name: str, share: float, others: float) -> str:
             "talker first (replay: its file first; live: its --input first; the aggregator: first in --expect).")
 
 
+def unsteered_note(unsteered_s: float, speech_s: float) -> str:
+    """The sentence for speech mostly not steered at a talker (:meth:`estimators.SourceTracker.unsteered_speech`)."""
+    return (f"No talker was tracked in {unsteered_s:.1f} s of the {speech_s:.1f} s of speech "
+            f"({100 * unsteered_s / speech_s:.0f} %): the talker's sound did not stand out on every device (far "
+            f"devices, a reverberant room or loud noise do this), and there {NO_TALKER_OUTPUT}")
+
+
 @dataclass
 class RunOutcome:
     """What a run produced: the report (also in report.json) and the pipeline (for tests)."""
@@ -485,6 +492,9 @@ def _finalise(report, out, cfg, pipeline, layout, fixture, names, collector, t_w
             poorly = pipeline.tracker.reference_heard_poorly()
             if note is None and poorly is not None:
                 note = reference_note(layout.channels[0].name, *poorly)
+            unsteered = pipeline.tracker.unsteered_speech()
+            if note is None and unsteered is not None:
+                note = unsteered_note(*unsteered)
             if note is not None:   # the run's log collector is already detached here
                 log.warning(note)
                 collector.messages.append(note)

@@ -997,6 +997,42 @@ def test_a_reference_device_the_talker_track_rarely_measures_is_said_to_hear_poo
     assert left_out.report()["device_matched_share"][0] is None
 
 
+def test_speech_with_no_talker_steered_is_counted_and_said_when_it_is_most_of_the_speech():
+    """Speech frames in which no talker track is steered are counted (``report()["unsteered_speech_s"]``); when
+    they are more than ``UNSTEERED_SHARE_MAX`` of the speech and at least ``UNSTEERED_MIN_S``, the tracker says so
+    (the stream turns it into one sentence). A talker heard from the first word costs only the frames a track
+    needs to be born; pauses count in neither figure."""
+    from estimators.tracks import UNSTEERED_MIN_S, UNSTEERED_SHARE_MAX
+    rng = np.random.default_rng(3)
+    heard = _tracker()
+    t = _talk(heard, rng, lambda t: TALKER_A, 3.0)
+    _pause(heard, rng, 1.0, t)
+    rep = heard.report()
+    assert rep["speech_s"] == pytest.approx(3.0, abs=DT) and 0 < rep["unsteered_speech_s"] < 0.2
+    assert heard.unsteered_speech() is None
+    # speech in which the talker's peaks are on no pair (only clutter): nothing is ever steered
+    unheard = _tracker()
+    t = 0.0
+    for _ in range(int(3.0 / DT)):
+        tdoa, value = _peaks([], rng)
+        unheard.update(tdoa, value, speech_probability=1.0, usable=USABLE, time_s=t)
+        t += DT
+    _pause(unheard, rng, 1.0, t)
+    unsteered_s, speech_s = unheard.unsteered_speech()
+    assert unsteered_s == speech_s == unheard.report()["unsteered_speech_s"] == pytest.approx(3.0, abs=DT)
+    # unheard for less than UNSTEERED_MIN_S, then heard: more than the share, too short to say
+    short = _tracker()
+    t = 0.0
+    for _ in range(int(0.8 * UNSTEERED_MIN_S / DT)):
+        tdoa, value = _peaks([], rng)
+        short.update(tdoa, value, speech_probability=1.0, usable=USABLE, time_s=t)
+        t += DT
+    _talk(short, rng, lambda t: TALKER_A, 1.0, t)
+    rep = short.report()
+    assert rep["unsteered_speech_s"] > UNSTEERED_SHARE_MAX * rep["speech_s"]
+    assert short.unsteered_speech() is None
+
+
 @pytest.mark.parametrize("held", [True, False])
 def test_a_reference_heard_poorly_is_not_re_anchored_onto_another_peak(monkeypatch, held):
     """The talker is heard by every device for 1 s; then device 0's pairs lose its peak (the reference's share of

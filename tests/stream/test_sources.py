@@ -223,6 +223,29 @@ def test_without_a_talker_or_a_noise_source_the_output_is_the_devices_average(tm
     assert 0.5 / n_dev < quiet < 2.0 / n_dev, quiet
 
 
+def test_a_stream_that_steers_at_no_talker_in_much_of_its_speech_says_so(tmp_path):
+    """`kitchen_noise` (dishes from 2 s before the talker, five devices): the tracker steers at no talker in about
+    1.2 s of the 2.9 s its speech detector calls speech (measured: 48 of the 136 frames of the talker's speech,
+    at 5.5-6.2 s among them), so the output there is not steered at the talker, and one sentence says how much
+    and what the output was instead; `meeting_table`, steered from its first words, says nothing."""
+    kitchen = run_replay([FIXTURE.parent / "kitchen_noise"], tmp_path / "k", config=EngineConfig(**FAST))
+    src = kitchen.report["sources"]
+    said = [m for m in kitchen.report["messages"] if m.startswith("No talker was tracked in")]
+    assert len(said) == 1 and f"{src['unsteered_speech_s']:.1f} s of the {src['speech_s']:.1f} s" in said[0]
+    assert src["unsteered_speech_s"] > 0.3 * src["speech_s"]
+    assert "the output is the average of the aligned devices" in said[0]
+    # the per-frame record (toa.csv) agrees within the tracker's look-ahead (measured 1.09 s there against the
+    # tracker's own 1.22 s: eight 16 ms frames, the 0.128 s look-ahead)
+    steered = np.asarray(kitchen.pipeline.state.track_id) >= 0
+    speech = np.asarray(kitchen.pipeline.state.speech_probability) >= 0.5
+    frame = kitchen.pipeline.tracker.frame_period_s
+    assert np.sum(speech & ~steered) * frame == pytest.approx(
+        src["unsteered_speech_s"], abs=kitchen.pipeline.config.tracker_lookahead_s + 2 * frame)
+    table = run_replay([FIXTURE], tmp_path / "t", config=EngineConfig(**FAST))
+    assert table.report["sources"]["unsteered_speech_s"] < 0.1
+    assert not any(m.startswith("No talker") for m in table.report["messages"])
+
+
 def _with_noise_device(tmp_path: Path, device: int) -> Path:
     """A copy of the meeting_table fixture in which one device records only white noise (a covered or broken mic,
     a phone in a pocket next to a fan)."""
