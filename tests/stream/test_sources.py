@@ -228,14 +228,15 @@ def test_a_stream_that_steers_at_no_talker_in_much_of_its_speech_says_so(tmp_pat
     1.2 s of the 2.9 s its speech detector calls speech (measured: 48 of the 136 frames of the talker's speech,
     at 5.5-6.2 s among them), so the output there is not steered at the talker, and one sentence says how much
     and what the output was instead; `meeting_table`, steered from its first words, says nothing."""
+    from estimators.tracks import UNSTEERED_SHARE_MAX
     kitchen = run_replay([FIXTURE.parent / "kitchen_noise"], tmp_path / "k", config=EngineConfig(**FAST))
     src = kitchen.report["sources"]
     said = [m for m in kitchen.report["messages"] if m.startswith("No talker was tracked in")]
     assert len(said) == 1 and f"{src['unsteered_speech_s']:.1f} s of the {src['speech_s']:.1f} s" in said[0]
-    assert src["unsteered_speech_s"] > 0.3 * src["speech_s"]
+    assert src["unsteered_speech_s"] > UNSTEERED_SHARE_MAX * src["speech_s"]
     assert "the output is the average of the aligned devices" in said[0]
     # the per-frame record (toa.csv) agrees within the tracker's look-ahead (measured 1.09 s there against the
-    # tracker's own 1.22 s: eight 16 ms frames, the 0.128 s look-ahead)
+    # tracker's own 1.22 s: eight 16 ms frames, as long as the 0.128 s look-ahead)
     steered = np.asarray(kitchen.pipeline.state.track_id) >= 0
     speech = np.asarray(kitchen.pipeline.state.speech_probability) >= 0.5
     frame = kitchen.pipeline.tracker.frame_period_s
