@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import importlib.util
 import io
+import re
 import sys
 import threading
 from pathlib import Path
@@ -184,6 +185,9 @@ def test_a_live_card_whose_channels_are_an_array(scene, jack, bay, tmp_path):
                     max_duration_s=6.5, status=status, overrides=[({"arrays": str(arrays)}, "test")])
     rep = live.report
     assert "| A " in status.getvalue() and "| phone " in status.getvalue(), status.getvalue()[-300:]
+    # the tracker's sources, and how much of the speech so far had no talker steered (the report's sentence)
+    assert re.search(r"\| sources \S+ steered -?\d+ \(no talker in \d+\.\d of \d+\.\d s of speech\)",
+                     status.getvalue()), status.getvalue()[-300:]
     assert rep["status"] == "ok", rep.get("error")
     assert rep["stream"]["channels"] == ["A.1", "A.2", "A.3", "A.4", "phone"]
     assert len(set(rep["stream"]["coarse_offsets_s"][:4])) == 1
