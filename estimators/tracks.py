@@ -763,28 +763,30 @@ class SourceTracker:
         share = self._device_matched / np.maximum(self._device_usable, 1)
         return float(share[0]), float(np.median(share[1:][self._device_usable[1:] > 0]))
 
+    def speech_seconds(self) -> tuple[float, float]:
+        """(seconds of speech frames with no talker track steered, seconds of speech frames) so far."""
+        return self.n_speech_unsteered * self.frame_period_s, self.n_speech_frames * self.frame_period_s
+
     def unsteered_speech(self) -> tuple[float, float] | None:
-        """(seconds of speech frames with no talker track steered, seconds of speech frames) when the first is more
-        than ``UNSTEERED_SHARE_MAX`` of the second and at least ``UNSTEERED_MIN_S``, else None. There the output is
-        not steered at anyone (the pipeline's fallback). A talker track needs a few frames to be born (the fixtures
-        steered from their first words: 0.05-0.06 s of 3.9-11.7 s of speech); much speech unsteered means the tracker did not find the
-        talker on every device. Over the 260 generated scenes of seeds 7-11 (twenty-sixth session) it is said in 32,
+        """:meth:`speech_seconds` when the first is more than ``UNSTEERED_SHARE_MAX`` of the second and at least
+        ``UNSTEERED_MIN_S``, else None. There the output is not steered at anyone (the pipeline's fallback). A
+        talker track needs a few frames to be born (the fixtures steered from their first words: 0.05-0.06 s of
+        3.9-11.7 s of speech); much speech unsteered means the tracker did not find the talker on every device. Over the 260 generated scenes of seeds 7-11 (twenty-sixth session) it is said in 32,
         each with more than 1 s of the talker's speech truly not beamed at (32 of the 36 such scenes; the most
         unsteered share where it is not said, 33 %, is babble noise the detector calls speech); mostly devices
         spread in a reverberant room under broadband noise (seed 8's `s35`: 4 devices, RT60 0.66 s, white noise at
         30 dB, the first talker track born after 8.2 s)."""
-        speech_s = self.n_speech_frames * self.frame_period_s
-        unsteered_s = self.n_speech_unsteered * self.frame_period_s
+        unsteered_s, speech_s = self.speech_seconds()
         if unsteered_s >= UNSTEERED_MIN_S and unsteered_s > UNSTEERED_SHARE_MAX * speech_s:
             return unsteered_s, speech_s
         return None
 
     def report(self) -> dict:
         """Tracks (alive and ended), switches and counters, for ``report.json``."""
+        unsteered_s, speech_s = self.speech_seconds()
         return {"target": self.target if self.target != "nearest" else f"nearest {self.target_device}",
                 "n_frames": self.n_frames, "n_speech_frames": self.n_speech_frames, "n_births": self.n_births,
-                "speech_s": round(self.n_speech_frames * self.frame_period_s, 3),
-                "unsteered_speech_s": round(self.n_speech_unsteered * self.frame_period_s, 3),
+                "speech_s": round(speech_s, 3), "unsteered_speech_s": round(unsteered_s, 3),
                 "n_reanchored": self.n_reanchored, "n_taken_over": self.n_taken_over,
                 "n_pairs_near_noise": self.n_pairs_near_noise, "n_talkers_from_pauses": self.n_talkers_from_pauses,
                 "steered_hits": self.n_steered_hits,

@@ -35,8 +35,7 @@ LIVE_DEFAULTS = {"align_window_s": 4.0, "max_offset_s": 0.5, "align_recheck_s": 
 class StatusLine:
     """A live status line: per-device level and clipping, overflow/underflow counts, per-device TOA and the
     tracked sources (with the seconds of speech so far in which no talker was steered), gated frames, CPU load
-    and latency. On a terminal it rewrites one line; otherwise it
-    prints a line every ``every_s`` seconds.
+    and latency. On a terminal it rewrites one line; otherwise it prints a line every ``every_s`` seconds.
     """
 
     def __init__(self, source: CardSource, playback: CardPlayback | None = None, *, stream: TextIO | None = None,
@@ -91,10 +90,9 @@ class StatusLine:
         if pipeline.tracker is not None:
             tracks = [t for t in pipeline.tracker.tracks if t.kind != "tentative"]
             kinds = "".join("S" if t.kind == "speech" else "N" for t in tracks)
-            line += f" | sources {kinds or '-'} steered {pipeline.tracker.steered_id}"
-            tr = pipeline.tracker   # speech with no talker steered, of all speech (SourceTracker.unsteered_speech)
-            line += (f" (no talker in {tr.n_speech_unsteered * tr.frame_period_s:.1f} of "
-                     f"{tr.n_speech_frames * tr.frame_period_s:.1f} s of speech)")
+            unsteered_s, speech_s = pipeline.tracker.speech_seconds()
+            line += (f" | sources {kinds or '-'} steered {pipeline.tracker.steered_id} "
+                     f"(no talker in {unsteered_s:.1f} of {speech_s:.1f} s of speech)")
         line += f" | gated {pipeline.counters.n_gated} | CPU {100 * load:.0f}%"
         line += f" | latency ~{1e3 * self.latency_s(pipeline):.0f} ms"
         return line

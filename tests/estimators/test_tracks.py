@@ -997,6 +997,16 @@ def test_a_reference_device_the_talker_track_rarely_measures_is_said_to_hear_poo
     assert left_out.report()["device_matched_share"][0] is None
 
 
+def _speech_of_clutter(tr, rng, seconds, t=0.0):
+    """``seconds`` of speech frames whose peaks are all clutter (a talker no pair hears) into ``tr`` from ``t``;
+    returns the time of the next frame."""
+    for _ in range(int(seconds / DT)):
+        tdoa, value = _peaks([], rng)
+        tr.update(tdoa, value, speech_probability=1.0, usable=USABLE, time_s=t)
+        t += DT
+    return t
+
+
 def test_speech_with_no_talker_steered_is_counted_and_said_when_it_is_most_of_the_speech():
     """Speech frames in which no talker track is steered are counted (``report()["unsteered_speech_s"]``); when
     they are more than ``UNSTEERED_SHARE_MAX`` of the speech and at least ``UNSTEERED_MIN_S``, the tracker says so
@@ -1012,22 +1022,12 @@ def test_speech_with_no_talker_steered_is_counted_and_said_when_it_is_most_of_th
     assert heard.unsteered_speech() is None
     # speech in which the talker's peaks are on no pair (only clutter): nothing is ever steered
     unheard = _tracker()
-    t = 0.0
-    for _ in range(int(3.0 / DT)):
-        tdoa, value = _peaks([], rng)
-        unheard.update(tdoa, value, speech_probability=1.0, usable=USABLE, time_s=t)
-        t += DT
-    _pause(unheard, rng, 1.0, t)
+    _pause(unheard, rng, 1.0, _speech_of_clutter(unheard, rng, 3.0))
     unsteered_s, speech_s = unheard.unsteered_speech()
     assert unsteered_s == speech_s == unheard.report()["unsteered_speech_s"] == pytest.approx(3.0, abs=DT)
     # unheard for less than UNSTEERED_MIN_S, then heard: more than the share, too short to say
     short = _tracker()
-    t = 0.0
-    for _ in range(int(0.8 * UNSTEERED_MIN_S / DT)):
-        tdoa, value = _peaks([], rng)
-        short.update(tdoa, value, speech_probability=1.0, usable=USABLE, time_s=t)
-        t += DT
-    _talk(short, rng, lambda t: TALKER_A, 1.0, t)
+    _talk(short, rng, lambda t: TALKER_A, 1.0, _speech_of_clutter(short, rng, 0.8 * UNSTEERED_MIN_S))
     rep = short.report()
     assert rep["unsteered_speech_s"] > UNSTEERED_SHARE_MAX * rep["speech_s"]
     assert short.unsteered_speech() is None
