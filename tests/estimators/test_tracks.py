@@ -54,11 +54,12 @@ def _talk(tr, rng, toa_at, seconds, t=0.0):
     return t
 
 
-def _pause(tr, rng, seconds, t):
-    """``seconds`` of non-speech frames with clutter only into ``tr`` from ``t``; returns the next frame's time."""
+def _pause(tr, rng, seconds, t, *, speech_probability=0.0):
+    """``seconds`` of non-speech frames with clutter only into ``tr`` from ``t``; returns the next frame's time.
+    With ``speech_probability=1.0``: speech frames whose peaks are all clutter (a talker no pair hears)."""
     for _ in range(int(seconds / DT)):
         tdoa, value = _peaks([], rng)
-        tr.update(tdoa, value, speech_probability=0.0, usable=USABLE, time_s=t)
+        tr.update(tdoa, value, speech_probability=speech_probability, usable=USABLE, time_s=t)
         t += DT
     return t
 
@@ -997,16 +998,6 @@ def test_a_reference_device_the_talker_track_rarely_measures_is_said_to_hear_poo
     assert left_out.report()["device_matched_share"][0] is None
 
 
-def _speech_of_clutter(tr, rng, seconds, t=0.0):
-    """``seconds`` of speech frames whose peaks are all clutter (a talker no pair hears) into ``tr`` from ``t``;
-    returns the time of the next frame."""
-    for _ in range(int(seconds / DT)):
-        tdoa, value = _peaks([], rng)
-        tr.update(tdoa, value, speech_probability=1.0, usable=USABLE, time_s=t)
-        t += DT
-    return t
-
-
 def test_speech_with_no_talker_steered_is_counted_and_said_when_it_is_most_of_the_speech():
     """Speech frames in which no talker track is steered are counted (``report()["unsteered_speech_s"]``); when
     they are more than ``UNSTEERED_SHARE_MAX`` of the speech and at least ``UNSTEERED_MIN_S``, the tracker says so
@@ -1022,12 +1013,12 @@ def test_speech_with_no_talker_steered_is_counted_and_said_when_it_is_most_of_th
     assert heard.unsteered_speech() is None
     # speech in which the talker's peaks are on no pair (only clutter): nothing is ever steered
     unheard = _tracker()
-    _pause(unheard, rng, 1.0, _speech_of_clutter(unheard, rng, 3.0))
+    _pause(unheard, rng, 1.0, _pause(unheard, rng, 3.0, 0.0, speech_probability=1.0))
     unsteered_s, speech_s = unheard.unsteered_speech()
     assert unsteered_s == speech_s == unheard.report()["unsteered_speech_s"] == pytest.approx(3.0, abs=DT)
     # unheard for less than UNSTEERED_MIN_S, then heard: more than the share, too short to say
     short = _tracker()
-    _talk(short, rng, lambda t: TALKER_A, 1.0, _speech_of_clutter(short, rng, 0.8 * UNSTEERED_MIN_S))
+    _talk(short, rng, lambda t: TALKER_A, 1.0, _pause(short, rng, 0.8 * UNSTEERED_MIN_S, 0.0, speech_probability=1.0))
     rep = short.report()
     assert rep["unsteered_speech_s"] > UNSTEERED_SHARE_MAX * rep["speech_s"]
     assert short.unsteered_speech() is None
